@@ -1,0 +1,3 @@
+def main():
+    import zenrl.common
+    print("ok", zenrl.common.__file__)
