@@ -1,3 +1,203 @@
-def main():
-    import zenrl.common
-    print("ok", zenrl.common.__file__)
+"""``zenrl`` command line: one subcommand per role plus the launcher and tools.
+
+Every role command takes ``--config FILE`` and ``--set section.field=value`` (repeatable);
+``zenrl config --list`` prints every option with its default and description.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import threading
+from typing import Callable
+
+from zenrl.common.config import RunConfig, describe_options, load_config
+from zenrl.common.errors import ZenrlError
+
+log = logging.getLogger("zenrl")
+
+
+def setup_logging(level: str = "INFO", role: str = "") -> None:
+    fmt = f"%(asctime)s %(levelname)s {role + ' ' if role else ''}%(name)s: %(message)s"
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, stream=sys.stderr)
+
+
+def _options_epilog() -> str:
+    rows = describe_options()
+    width = max(len(r[0]) for r in rows)
+    lines = ["configuration options (YAML file, ZENRL__SECTION__FIELD env vars, or --set section.field=value):"]
+    for name, default, desc in rows:
+        lines.append(f"  {name:<{width}}  {desc} [default: {default}]")
+    return "\n".join(lines)
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", help="YAML config file")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override one config option (repeatable)")
+    p.add_argument("--run-id", help="run id (key prefix zenrl/<run-id>/); also config run_id")
+    p.add_argument("--router", help="Zenoh router endpoint (also $ZENRL_ROUTER)")
+    p.add_argument("--seed", type=int, help="base random seed")
+    p.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "INFO"), help="logging level")
+
+
+def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConfig:
+    ov = list(args.overrides) + list(extra or [])
+    if getattr(args, "run_id", None):
+        ov.append(f"run_id={args.run_id}")
+    if getattr(args, "router", None):
+        ov.append(f"transport.router={args.router}")
+    if getattr(args, "seed", None) is not None:
+        ov.append(f"seed={args.seed}")
+    return load_config(args.config, ov)
+
+
+def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
+    from zenrl.common.transport import install_stop_signals
+
+    setup_logging(args.log_level, role)
+    cfg = resolve(args)
+    run_id = cfg.run_id or "default"
+    stop = threading.Event()
+    install_stop_signals(stop)
+    fn(cfg, run_id, stop)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from zenrl.replay.service import main
+
+    return _run_role(args, "replay", lambda c, r, s: main(c, r, s, args.id))
+
+
+def cmd_learner(args: argparse.Namespace) -> int:
+    from zenrl.learner.service import main
+
+    return _run_role(args, "learner", lambda c, r, s: main(c, r, s, resume=args.resume))
+
+
+def cmd_actor(args: argparse.Namespace) -> int:
+    from zenrl.actor.service import main
+
+    return _run_role(args, "actor", lambda c, r, s: main(c, r, s, actor_id=args.id, slot=args.slot))
+
+
+def cmd_evaluator(args: argparse.Namespace) -> int:
+    from zenrl.actor.evaluator import main
+
+    return _run_role(args, "evaluator", lambda c, r, s: main(c, r, s))
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from zenrl.common.transport import install_stop_signals, open_router
+
+    setup_logging(args.log_level, "router")
+    stop = threading.Event()
+    install_stop_signals(stop)
+    session = open_router(args.listen or ["tcp/0.0.0.0:7447"], args.router_config)
+    log.info("router up, listening on %s", args.router_config or args.listen)
+    try:
+        stop.wait()
+    finally:
+        session.close()
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from zenrl.launcher import launch
+
+    setup_logging(args.log_level, "run")
+    extra = []
+    if args.actors is not None:
+        extra.append(f"actor.num_actors={args.actors}")
+    if args.no_progress:
+        extra.append("progress=false")
+    cfg = resolve(args, extra)
+    return launch(cfg, resume_dir=args.resume)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from zenrl.launcher import status
+
+    setup_logging(args.log_level, "status")
+    cfg = resolve(args)
+    return status(cfg, cfg.run_id or "default", as_json=args.json, wait_s=args.wait)
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    if args.list:
+        sys.stdout.write(_options_epilog() + "\n")
+        return 0
+    import yaml
+
+    cfg = resolve(args)
+    sys.stdout.write(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="zenrl", description="Distributed actor-learner RL over Eclipse Zenoh.",
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    fmt = argparse.RawDescriptionHelpFormatter
+    epilog = _options_epilog()
+
+    s = sub.add_parser("run", help="run everything on this machine (embedded router)", epilog=epilog, formatter_class=fmt)
+    _add_config_args(s)
+    s.add_argument("--actors", type=int, help="number of actor processes (actor.num_actors)")
+    s.add_argument("--resume", metavar="RUN_DIR", help="resume the run in RUN_DIR (runs/<id>) from its newest checkpoint")
+    s.add_argument("--no-progress", action="store_true", help="no live progress display")
+    s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("replay", help="the prioritized replay service", epilog=epilog, formatter_class=fmt)
+    _add_config_args(s)
+    s.add_argument("--id", default="replay", help="service id")
+    s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("learner", help="the learner", epilog=epilog, formatter_class=fmt)
+    _add_config_args(s)
+    s.add_argument("--resume", action="store_true", help="continue from the newest valid checkpoint of the run")
+    s.set_defaults(func=cmd_learner)
+
+    s = sub.add_parser("actor", help="an actor process (many envs)", epilog=epilog, formatter_class=fmt)
+    _add_config_args(s)
+    s.add_argument("--id", default=None, help="actor id (default: actor-<pid>)")
+    s.add_argument("--slot", type=int, default=None, help="exploration slot (default: from config or the running system)")
+    s.set_defaults(func=cmd_actor)
+
+    s = sub.add_parser("evaluator", help="greedy evaluation of the latest weights", epilog=epilog, formatter_class=fmt)
+    _add_config_args(s)
+    s.set_defaults(func=cmd_evaluator)
+
+    s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
+    s.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")
+    s.add_argument("--router-config", help="JSON5 router config file")
+    s.add_argument("--log-level", default="INFO")
+    s.set_defaults(func=cmd_router)
+
+    s = sub.add_parser("status", help="show the live processes of a run")
+    _add_config_args(s)
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.add_argument("--wait", type=float, default=3.0, help="seconds to collect stats")
+    s.set_defaults(func=cmd_status)
+
+    s = sub.add_parser("config", help="print the resolved config (or --list every option)")
+    _add_config_args(s)
+    s.add_argument("--list", action="store_true", help="list every option with its description")
+    s.set_defaults(func=cmd_config)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ZenrlError as e:
+        sys.stderr.write(f"zenrl: error: {e}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""Configuration: one frozen pydantic model per component, each field documented.
+
+Layers, later ones win: the defaults below, then a YAML file (``--config``), then environment
+variables ``ZENRL__<SECTION>__<FIELD>`` (what docker compose sets; ``ZENRL_ROUTER`` is a
+shortcut for ``transport.router``), then command-line ``--set section.field=value``.
+Every value is validated on construction; an error names the option and the bad value.
+``zenrl config --list`` (and ``zenrl run --help``) prints every option with its description.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Literal, Mapping, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from zenrl.common.errors import ConfigError
+
+ENV_PREFIX = "ZENRL__"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+
+
+class TransportConfig(_Section):
+    router: str = Field("tcp/127.0.0.1:7447", description="Zenoh router endpoint every process connects to (env ZENRL_ROUTER).")
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Endpoints the embedded router of `zenrl run` listens on.")
+    router_config: Optional[str] = Field(None, description="JSON5 config file for the embedded router (overrides `listen`).")
+    connect_timeout_s: float = Field(30.0, ge=0, description="How long a client waits for the router at start-up.")
+    query_timeout_s: float = Field(5.0, gt=0, description="Timeout of every remote query (sample requests, weight fetches, slots).")
+    max_message_bytes: int = Field(64 * 1024 * 1024, ge=1024, le=1 << 30, description="Cap on one wire message; larger ones are refused on both ends.")
+
+
+class EnvConfig(_Section):
+    id: str = Field("CartPole-v1", description="Gymnasium environment id (zenrl/BurgerWar-v0 and zenrl/BurgerWarImage-v0 ship with zenrl).")
+    kwargs: dict[str, Any] = Field(default_factory=dict, description="Keyword arguments for gymnasium.make.")
+    max_episode_steps: Optional[int] = Field(None, ge=1, description="Override the env's time limit (truncation).")
+
+
+class NetworkConfig(_Section):
+    hidden: list[int] = Field(default_factory=lambda: [256, 256], description="Hidden layer sizes of the MLP torso (and of the head after a conv/dict encoder).")
+    dueling: bool = Field(True, description="Dueling Q head (value + advantage streams).")
+    conv: bool = Field(True, description="Use the Nature-DQN conv torso for uint8 image observations.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "NetworkConfig":
+        if not self.hidden or any(h <= 0 for h in self.hidden):
+            raise ValueError(f"network.hidden must be a non-empty list of positive sizes, got {self.hidden}")
+        return self
+
+
+class ReplayConfig(_Section):
+    capacity: int = Field(100_000, ge=1, description="Replay capacity in transitions (FIFO eviction).")
+    max_bytes: Optional[int] = Field(None, ge=1, description="Cap on replay storage in bytes; the ring is sized to min(capacity, max_bytes / item size).")
+    alpha: float = Field(0.6, ge=0, le=1, description="Prioritization exponent (0 = uniform).")
+    uniform: bool = Field(False, description="Sample uniformly instead of by priority.")
+    min_size: int = Field(1_000, ge=1, description="No samples are served before the replay holds this many transitions.")
+    samples_per_insert: Optional[float] = Field(None, gt=0, description="If set, cap sampled/inserted transitions at this ratio (Reverb-style rate limit).")
+    spi_tolerance: float = Field(10_000.0, gt=0, description="How many sampled transitions the samples-per-insert limit may run ahead.")
+    stats_interval_s: float = Field(2.0, gt=0, description="How often the replay publishes its stats.")
+    queue_size: int = Field(256, ge=1, description="Ingest queue length (chunks) between Zenoh and the replay.")
+    drop_after_s: float = Field(2.0, gt=0, lt=5, description="A chunk waiting this long for a full ingest queue is dropped and counted (stays below Zenoh's 5 s BLOCK fuse).")
+
+
+class ActorConfig(_Section):
+    num_actors: int = Field(2, ge=1, description="Number of actor processes `zenrl run` starts.")
+    envs_per_actor: int = Field(16, ge=1, description="Environments per actor process, stepped as a batch.")
+    n_step: int = Field(3, ge=1, description="n of the n-step returns built on the actor.")
+    chunk_size: int = Field(64, ge=1, description="Transitions per message sent to the replay.")
+    eps_base: float = Field(0.4, gt=0, le=1, description="Ape-X epsilon ladder: slot i of N uses eps_base ** (1 + eps_alpha * i / (N - 1)).")
+    eps_alpha: float = Field(7.0, ge=0, description="Ape-X epsilon ladder exponent range.")
+    slot: Optional[int] = Field(None, ge=0, description="Fixed exploration slot (default: assigned by the launcher / the running system).")
+    ladder_size: Optional[int] = Field(None, ge=1, description="N of the epsilon ladder (default: num_actors).")
+    weights_poll_steps: int = Field(1, ge=1, description="Check for new weights every this many batched steps.")
+    episode_report_s: float = Field(1.0, gt=0, description="How often finished-episode statistics are published.")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads in each actor.")
+
+
+class LearnerConfig(_Section):
+    batch_size: int = Field(128, ge=1, description="Transitions per update.")
+    lr: float = Field(5e-4, gt=0, description="Learning rate.")
+    optimizer: Literal["adam", "rmsprop"] = Field("adam", description="adam, or rmsprop (centered).")
+    adam_eps: float = Field(1.5e-4, gt=0, description="Adam epsilon (Ape-X / Rainbow use ~1.5e-4).")
+    gamma: float = Field(0.99, gt=0, le=1, description="Discount factor.")
+    grad_clip: float = Field(10.0, gt=0, description="Gradient-norm clip.")
+    huber_delta: float = Field(1.0, gt=0, description="Huber loss threshold.")
+    target_update_period: int = Field(500, ge=1, description="Copy online -> target network every this many updates.")
+    beta0: float = Field(0.4, ge=0, le=1, description="Initial importance-sampling exponent beta.")
+    beta_anneal_updates: int = Field(20_000, ge=1, description="Updates over which beta anneals linearly to 1.")
+    publish_every_updates: int = Field(25, ge=1, description="Broadcast weights every this many updates.")
+    requests_in_flight: int = Field(4, ge=1, description="Sample requests kept in flight by the prefetcher.")
+    max_updates_per_insert: Optional[float] = Field(None, gt=0, description="If set, the learner waits when updates*batch_size exceeds this times the inserted transitions.")
+    device: str = Field("auto", description="torch device: auto (cuda if available), cpu, cuda, cuda:N.")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads in the learner.")
+    checkpoint_interval_s: float = Field(60.0, gt=0, description="Save a checkpoint this often (and on stop).")
+    keep_checkpoints: int = Field(3, ge=1, description="Keep the newest K checkpoints.")
+    log_interval_s: float = Field(2.0, gt=0, description="How often the learner logs and publishes stats.")
+
+
+class EvalConfig(_Section):
+    enabled: bool = Field(True, description="Run the evaluator process.")
+    interval_s: float = Field(10.0, gt=0, description="Evaluate the latest weights this often.")
+    episodes: int = Field(10, ge=1, description="Greedy episodes per evaluation.")
+    seed_offset: int = Field(1_000_000, ge=0, description="Evaluation seeds start at seed + seed_offset (separate from training seeds).")
+    epsilon: float = Field(0.0, ge=0, le=1, description="Evaluation epsilon (0 = greedy).")
+
+
+class A3CConfig(_Section):
+    t_max: int = Field(5, ge=1, description="Rollout length per update (steps per env).")
+    entropy_coef: float = Field(0.01, ge=0, description="Entropy bonus coefficient.")
+    value_coef: float = Field(0.5, ge=0, description="Value loss coefficient.")
+    max_staleness: int = Field(8, ge=0, description="Drop gradients computed from parameters more than this many versions old.")
+    broadcast_every: int = Field(1, ge=1, description="Broadcast parameters every K applied gradients.")
+    rmsprop_alpha: float = Field(0.99, gt=0, lt=1, description="RMSProp smoothing constant.")
+    rmsprop_eps: float = Field(1e-5, gt=0, description="RMSProp epsilon.")
+
+
+class RunConfig(_Section):
+    algo: Literal["apex", "a3c"] = Field("apex", description="Algorithm family: apex (Ape-X DQN) or a3c.")
+    run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Run id (key prefix zenrl/<run_id>/ and runs/<run_id>/); default: generated.")
+    runs_dir: str = Field("runs", description="Directory holding runs/<run_id>/.")
+    seed: int = Field(0, ge=0, description="Base random seed.")
+    max_env_steps: Optional[int] = Field(None, ge=1, description="Stop the run after this many env steps (all actors).")
+    max_updates: Optional[int] = Field(None, ge=1, description="Stop the run after this many learner updates.")
+    max_wall_s: Optional[float] = Field(None, gt=0, description="Stop the run after this many seconds.")
+    target_return: Optional[float] = Field(None, description="Stop the run once the greedy eval mean return reaches this.")
+    progress: bool = Field(True, description="Show live progress in the terminal (zenrl run).")
+    env: EnvConfig = Field(default_factory=EnvConfig)
+    network: NetworkConfig = Field(default_factory=NetworkConfig)
+    transport: TransportConfig = Field(default_factory=TransportConfig)
+    replay: ReplayConfig = Field(default_factory=ReplayConfig)
+    actor: ActorConfig = Field(default_factory=ActorConfig)
+    learner: LearnerConfig = Field(default_factory=LearnerConfig)
+    evaluator: EvalConfig = Field(default_factory=EvalConfig)
+    a3c: A3CConfig = Field(default_factory=A3CConfig)
+
+
+# --------------------------------------------------------------------------------------------
+def _set_path(tree: dict[str, Any], path: str, value: Any) -> None:
+    parts = path.split(".")
+    node = tree
+    for p in parts[:-1]:
+        nxt = node.get(p)
+        if not isinstance(nxt, dict):
+            nxt = {}
+            node[p] = nxt
+        node = nxt
+    node[parts[-1]] = value
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def _format_errors(e: ValidationError, source: str) -> str:
+    lines = []
+    for err in e.errors():
+        loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        val = err.get("input")
+        lines.append(f"  {loc}: {err['msg']} (got {val!r})")
+    return f"invalid configuration ({source}):\n" + "\n".join(lines)
+
+
+def load_config(path: str | os.PathLike[str] | None = None, overrides: list[str] | None = None,
+                environ: Mapping[str, str] | None = None, base: dict[str, Any] | None = None) -> RunConfig:
+    """Resolve a :class:`RunConfig` from the layers described in the module docstring.
+
+    ``overrides`` are ``"section.field=value"`` strings (values parsed as YAML scalars).
+    Raises :class:`ConfigError` naming every bad option.
+    """
+    tree: dict[str, Any] = dict(base or {})
+    sources = ["defaults"]
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"config file {str(p)!r} does not exist")
+        try:
+            loaded = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config file {str(p)!r} is not valid YAML: {e}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"config file {str(p)!r} must hold a mapping, got {type(loaded).__name__}")
+        tree.update(loaded)
+        sources.append(str(p))
+    env = os.environ if environ is None else environ
+    if env.get("ZENRL_ROUTER"):
+        _set_path(tree, "transport.router", env["ZENRL_ROUTER"])
+    for k, v in env.items():
+        if k.startswith(ENV_PREFIX):
+            _set_path(tree, k[len(ENV_PREFIX):].lower().replace("__", "."), _parse_value(v))
+            sources.append(k)
+    for o in overrides or []:
+        if "=" not in o:
+            raise ConfigError(f"override {o!r} must look like section.field=value")
+        k, v = o.split("=", 1)
+        _set_path(tree, k.strip(), _parse_value(v))
+        sources.append(f"--set {k.strip()}")
+    try:
+        return RunConfig.model_validate(tree)
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, ", ".join(sources))) from None
+
+
+def config_from_dict(d: Mapping[str, Any]) -> RunConfig:
+    """Validate a resolved config (e.g. the one saved in a run directory or checkpoint)."""
+    try:
+        return RunConfig.model_validate(dict(d))
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, "saved config")) from None
+
+
+def describe_options(model: type[BaseModel] = RunConfig, prefix: str = "") -> list[tuple[str, str, str]]:
+    """``[(dotted name, default, description)]`` of every option, for ``--help``."""
+    rows = []
+    for name, f in model.model_fields.items():
+        ann = f.annotation
+        dotted = f"{prefix}{name}"
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            rows.extend(describe_options(ann, dotted + "."))
+        else:
+            default = f.get_default(call_default_factory=True)
+            rows.append((dotted, repr(default), f.description or ""))
+    return rows

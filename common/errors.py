@@ -1,0 +1,39 @@
+"""The exception hierarchy of zenrl, in one place."""
+
+
+class ZenrlError(Exception):
+    """Base class of every error zenrl raises on purpose."""
+
+
+class ConfigError(ZenrlError, ValueError):
+    """A configuration value is invalid; the message names the option and the value."""
+
+
+class ProtocolError(ZenrlError, ValueError):
+    """A wire message is malformed. ``field`` names what was wrong, ``reason`` is a short
+    machine-readable tag used to count rejections (e.g. ``"version"``, ``"dtype"``)."""
+
+    def __init__(self, field: str, message: str, reason: str = "invalid") -> None:
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.reason = reason
+
+
+class SpecMismatch(ZenrlError, ValueError):
+    """A batch does not match the spec of the storage or network it is meant for."""
+
+
+class TransportError(ZenrlError):
+    """Zenoh could not be reached or a remote call failed."""
+
+
+class RemoteTimeout(TransportError):
+    """A remote call got no answer before its timeout."""
+
+
+class NotReady(ZenrlError):
+    """The replay service is not ready to serve samples (too few items, or rate limited)."""
+
+
+class CheckpointError(ZenrlError):
+    """A checkpoint is missing, corrupt, or incompatible with the current configuration."""

@@ -1,0 +1,571 @@
+"""The zenrl wire protocol: key expressions and messages, in one module.
+
+Every message is one msgpack map (an *envelope*)::
+
+    {"v": PROTOCOL_VERSION, "t": "<message type>", <field>: <value>, ...}
+
+Arrays travel as a map ``{"dtype": "<numpy dtype name>", "shape": [d0, d1, ...], "data": <bin>}``
+where ``data`` is the C-order raw buffer (little-endian, as numpy stores it on every platform
+zenrl runs on). A batch of arrays (transitions, parameters) is a map ``{name: array}`` with flat
+names (``obs/lidar``; see :mod:`zenrl.common.specs`).
+
+Decoding validates everything a peer could get wrong, and raises :class:`ProtocolError` naming
+the field: the payload size cap, msgpack itself, the version, the message type, the exact set of
+field names, value types, array dtypes (a whitelist), shapes against the byte length, consistent
+batch sizes, finite floats where they matter (rewards, priorities, weights, gradients). Nothing is
+ever unpickled. The README's "Wire protocol" section documents the same thing for third parties.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, Mapping
+
+import msgpack
+import numpy as np
+
+from zenrl.common.errors import ProtocolError
+from zenrl.common.specs import ALLOWED_DTYPES
+
+PROTOCOL_VERSION = 1
+
+#: Default cap on the size of one encoded message (bytes). Zenoh silently drops messages above
+#: the receiver's ``max_message_size``; zenrl refuses them on both ends with a clear error.
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+#: Cap on the number of arrays in one batch map and on the number of dimensions of an array.
+MAX_FIELDS = 256
+MAX_NDIM = 8
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+_FIELD_RE = re.compile(r"^[A-Za-z0-9_.\-/]{1,128}$")
+
+
+# --------------------------------------------------------------------------------------------
+# Key expressions. No key string is built anywhere else in zenrl.
+# --------------------------------------------------------------------------------------------
+def check_name(what: str, name: str) -> str:
+    """Validate a run id, actor id or role used inside a key expression."""
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ProtocolError(what, f"{name!r} must be 1-64 characters of [A-Za-z0-9_.-]", "name")
+    return name
+
+
+class Keys:
+    """Key expressions of one run: everything lives under ``zenrl/<run>/``.
+
+    ===============================  ===========  =========================================
+    key                              kind         message
+    ===============================  ===========  =========================================
+    ``transitions/<actor>``          put          :class:`TransitionBatch`  actor -> replay
+    ``replay/sample``                queryable    :class:`SampleRequest` -> :class:`SampleReply`
+    ``replay/priorities``            put          :class:`PriorityUpdate`   learner -> replay
+    ``weights``                      put          :class:`Weights`          learner -> actors
+    ``learner/weights``              queryable    (empty) -> :class:`Weights` (latest)
+    ``gradients/<worker>``           put          :class:`Gradients`        A3C worker -> learner
+    ``episodes/<actor>``             put          :class:`EpisodeStats`     actor -> anyone
+    ``eval``                         put          :class:`EvalResult`       evaluator -> anyone
+    ``stats/<role>/<id>``            put          :class:`Stats`            every process
+    ``alive/<role>/<id>``            liveliness   (token)                   every process
+    ``slots``                        queryable    :class:`SlotRequest` -> :class:`SlotReply`
+    ===============================  ===========  =========================================
+    """
+
+    def __init__(self, run_id: str) -> None:
+        self.run_id = check_name("run_id", run_id)
+        self.prefix = f"zenrl/{run_id}"
+
+    def transitions(self, actor_id: str) -> str:
+        return f"{self.prefix}/transitions/{check_name('actor_id', actor_id)}"
+
+    @property
+    def transitions_all(self) -> str:
+        return f"{self.prefix}/transitions/*"
+
+    @property
+    def sample(self) -> str:
+        return f"{self.prefix}/replay/sample"
+
+    @property
+    def priorities(self) -> str:
+        return f"{self.prefix}/replay/priorities"
+
+    @property
+    def weights(self) -> str:
+        return f"{self.prefix}/weights"
+
+    @property
+    def weights_query(self) -> str:
+        return f"{self.prefix}/learner/weights"
+
+    def gradients(self, worker_id: str) -> str:
+        return f"{self.prefix}/gradients/{check_name('worker_id', worker_id)}"
+
+    @property
+    def gradients_all(self) -> str:
+        return f"{self.prefix}/gradients/*"
+
+    def episodes(self, actor_id: str) -> str:
+        return f"{self.prefix}/episodes/{check_name('actor_id', actor_id)}"
+
+    @property
+    def episodes_all(self) -> str:
+        return f"{self.prefix}/episodes/*"
+
+    @property
+    def eval(self) -> str:
+        return f"{self.prefix}/eval"
+
+    def stats(self, role: str, proc_id: str) -> str:
+        return f"{self.prefix}/stats/{check_name('role', role)}/{check_name('id', proc_id)}"
+
+    @property
+    def stats_all(self) -> str:
+        return f"{self.prefix}/stats/**"
+
+    def alive(self, role: str, proc_id: str) -> str:
+        return f"{self.prefix}/alive/{check_name('role', role)}/{check_name('id', proc_id)}"
+
+    @property
+    def alive_all(self) -> str:
+        return f"{self.prefix}/alive/**"
+
+    @property
+    def slots(self) -> str:
+        return f"{self.prefix}/slots"
+
+    def parse_alive(self, key: str) -> tuple[str, str]:
+        """``zenrl/<run>/alive/<role>/<id>`` -> ``(role, id)``."""
+        parts = str(key).split("/")
+        if len(parts) != 5 or parts[2] != "alive":
+            raise ProtocolError("key", f"{key!r} is not a liveliness key of run {self.run_id}")
+        return parts[3], parts[4]
+
+
+# --------------------------------------------------------------------------------------------
+# Arrays
+# --------------------------------------------------------------------------------------------
+def encode_array(a: np.ndarray) -> dict[str, Any]:
+    """``np.ndarray`` -> wire map; one copy at most (only if ``a`` is not C-contiguous)."""
+    a = np.ascontiguousarray(a)
+    if a.dtype.name not in ALLOWED_DTYPES:
+        raise ProtocolError("dtype", f"{a.dtype.name} is not a wire dtype", "dtype")
+    if a.dtype.byteorder == ">":
+        a = a.astype(a.dtype.newbyteorder("<"))
+    data = memoryview(a).cast("B") if a.size else b""
+    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": data}
+
+
+def decode_array(name: str, m: Any) -> np.ndarray:
+    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy)."""
+    if not isinstance(m, dict) or set(m) != {"dtype", "shape", "data"}:
+        raise ProtocolError(name, "must be a map with exactly dtype, shape, data", "array")
+    dtype, shape, data = m["dtype"], m["shape"], m["data"]
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        raise ProtocolError(f"{name}.dtype", f"{dtype!r} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
+    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
+        raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+    if not isinstance(data, (bytes, bytearray)):
+        raise ProtocolError(f"{name}.data", "must be bin", "array")
+    dt = np.dtype(dtype)
+    expected = math.prod(shape) * dt.itemsize
+    if expected != len(data):
+        raise ProtocolError(f"{name}.data", f"holds {len(data)} bytes; dtype {dtype} and shape {shape} need {expected}", "shape")
+    return np.frombuffer(data, dtype=dt).reshape(shape)
+
+
+def encode_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    return {k: encode_array(np.asarray(v)) for k, v in arrays.items()}
+
+
+def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int | None = None) -> dict[str, np.ndarray]:
+    """Decode a map of arrays. With ``batch`` every array's first dimension must equal it."""
+    if not isinstance(m, dict) or not m:
+        raise ProtocolError(name, "must be a non-empty map of arrays", "array")
+    if len(m) > MAX_FIELDS:
+        raise ProtocolError(name, f"has {len(m)} arrays, more than {MAX_FIELDS}", "size")
+    out = {}
+    for k, v in m.items():
+        if not isinstance(k, str) or not _FIELD_RE.match(k):
+            raise ProtocolError(f"{name}", f"array name {k!r} must be 1-128 characters of [A-Za-z0-9_.-/]", "name")
+        a = decode_array(f"{name}.{k}", v)
+        if batch is not None and (a.ndim == 0 or a.shape[0] != batch):
+            raise ProtocolError(f"{name}.{k}", f"batch size {a.shape[:1]} differs from {batch}", "batch")
+        if require_finite and a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ProtocolError(f"{name}.{k}", "contains NaN or Inf", "nonfinite")
+        out[k] = a
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Messages
+# --------------------------------------------------------------------------------------------
+_REGISTRY: dict[str, type["Message"]] = {}
+
+
+@dataclass(frozen=True)
+class Message:
+    """Base of every wire message. Subclasses set ``TYPE`` and may override ``_validate``.
+
+    ``encode()`` returns ``bytes``; ``Cls.decode(payload)`` validates and returns an instance.
+    """
+
+    TYPE: ClassVar[str] = ""
+    #: field name -> how to check/convert it: "int", "uint", "float", "str", "name", "bool",
+    #: "arrays", "arrays?" (optional), "array", "array?", "map" (str -> scalar), "floats"
+    SCHEMA: ClassVar[dict[str, str]] = {}
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        if cls.TYPE:
+            _REGISTRY[cls.TYPE] = cls
+
+    # -- encode ---------------------------------------------------------------------------
+    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+        env: dict[str, Any] = {"v": PROTOCOL_VERSION, "t": self.TYPE}
+        for f in fields(self):
+            kind = self.SCHEMA[f.name]
+            v = getattr(self, f.name)
+            if kind.startswith("arrays"):
+                env[f.name] = None if v is None else encode_arrays(v)
+            elif kind.startswith("array"):
+                env[f.name] = None if v is None else encode_array(np.asarray(v))
+            else:
+                env[f.name] = v
+        out = msgpack.packb(env, use_bin_type=True)
+        if len(out) > max_bytes:
+            raise ProtocolError("payload", f"{self.TYPE} message of {len(out)} bytes exceeds the cap of {max_bytes} bytes; send smaller chunks", "size")
+        return out
+
+    # -- decode ---------------------------------------------------------------------------
+    @classmethod
+    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> "Message":
+        env = _unpack(payload, max_bytes)
+        if env["t"] != cls.TYPE:
+            raise ProtocolError("t", f"expected message type {cls.TYPE!r}, got {env['t']!r}", "type")
+        return cls._from_envelope(env)
+
+    @classmethod
+    def _from_envelope(cls, env: dict[str, Any]) -> "Message":
+        names = {f.name for f in fields(cls)}
+        got = set(env) - {"v", "t"}
+        missing = sorted(n for n in names - got if not cls.SCHEMA[n].endswith("?"))
+        if missing:
+            raise ProtocolError(missing[0], f"missing from {cls.TYPE} message", "field")
+        unknown = sorted(got - names)
+        if unknown:
+            raise ProtocolError(str(unknown[0]), f"is not a field of {cls.TYPE} messages", "field")
+        kw = {n: _check(n, cls.SCHEMA[n], env.get(n)) for n in names}
+        msg = cls(**kw)
+        msg._validate()
+        return msg
+
+    def _validate(self) -> None:
+        """Cross-field checks of a decoded message; raise ProtocolError."""
+
+
+def _unpack(payload: Any, max_bytes: int) -> dict[str, Any]:
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise ProtocolError("payload", f"must be bytes, got {type(payload).__name__}", "malformed")
+    if len(payload) > max_bytes:
+        raise ProtocolError("payload", f"{len(payload)} bytes exceeds the cap of {max_bytes} bytes", "size")
+    try:
+        env = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
+    except Exception as e:  # msgpack raises several unrelated types on garbage
+        raise ProtocolError("payload", f"is not valid msgpack ({type(e).__name__})", "malformed") from None
+    if not isinstance(env, dict):
+        raise ProtocolError("payload", f"must be a msgpack map, got {type(env).__name__}", "malformed")
+    if env.get("v") != PROTOCOL_VERSION:
+        raise ProtocolError("v", f"protocol version {env.get('v')!r} is not supported (this is version {PROTOCOL_VERSION})", "version")
+    if not isinstance(env.get("t"), str):
+        raise ProtocolError("t", "message type is missing", "type")
+    return env
+
+
+def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
+    """Decode a message of any registered type."""
+    env = _unpack(payload, max_bytes)
+    cls = _REGISTRY.get(env["t"])
+    if cls is None:
+        raise ProtocolError("t", f"unknown message type {env['t']!r}", "type")
+    return cls._from_envelope(env)
+
+
+def _check(name: str, kind: str, v: Any) -> Any:
+    optional = kind.endswith("?")
+    base = kind.rstrip("?")
+    if v is None:
+        if optional:
+            return None
+        raise ProtocolError(name, "must not be nil", "field")
+    if base in ("int", "uint"):
+        if not isinstance(v, int) or isinstance(v, bool) or (base == "uint" and v < 0):
+            raise ProtocolError(name, f"must be a{' non-negative' if base == 'uint' else 'n'} integer, got {v!r}", "field")
+        return v
+    if base == "float":
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ProtocolError(name, f"must be a finite number, got {v!r}", "nonfinite" if isinstance(v, float) else "field")
+        return float(v)
+    if base == "bool":
+        if not isinstance(v, bool):
+            raise ProtocolError(name, f"must be a boolean, got {v!r}", "field")
+        return v
+    if base == "str":
+        if not isinstance(v, str) or len(v) > 4096:
+            raise ProtocolError(name, "must be a string of at most 4096 characters", "field")
+        return v
+    if base == "name":
+        return check_name(name, v)
+    if base == "array":
+        return decode_array(name, v)
+    if base == "arrays":
+        return decode_arrays(name, v)
+    if base == "map":
+        if not isinstance(v, dict) or len(v) > 1024:
+            raise ProtocolError(name, "must be a map of at most 1024 entries", "field")
+        for k, x in v.items():
+            if not isinstance(k, str) or not (isinstance(x, (int, float, str, bool)) or x is None):
+                raise ProtocolError(f"{name}.{k}", "entries must map strings to numbers or strings", "field")
+            if isinstance(x, float) and not math.isfinite(x):
+                raise ProtocolError(f"{name}.{k}", "must be finite", "nonfinite")
+        return v
+    raise AssertionError(f"unknown schema kind {kind}")  # programming error, not input
+
+
+def _require_1d(name: str, a: np.ndarray, kinds: str, n: int | None = None) -> None:
+    if a.ndim != 1:
+        raise ProtocolError(name, f"must be 1-D, got shape {list(a.shape)}", "shape")
+    if a.dtype.kind not in kinds:
+        raise ProtocolError(name, f"dtype {a.dtype.name} is not allowed here", "dtype")
+    if n is not None and a.shape[0] != n:
+        raise ProtocolError(name, f"has {a.shape[0]} entries, expected {n}", "batch")
+
+
+def _require_finite(name: str, a: np.ndarray, nonneg: bool = False) -> None:
+    if not np.isfinite(a).all():
+        raise ProtocolError(name, "contains NaN or Inf", "nonfinite")
+    if nonneg and (a < 0).any():
+        raise ProtocolError(name, "contains negative values", "negative")
+
+
+@dataclass(frozen=True)
+class TransitionBatch(Message):
+    """A chunk of B transitions from one actor (Ape-X). ``data``: flat ``{name: array[B, ...]}``
+    (for Ape-X: ``obs/*``, ``action``, ``reward`` (n-step discounted sum), ``next_obs/*``,
+    ``terminated``, ``truncated``, ``n`` (steps actually summed)); ``priorities``: float32[B] or
+    nil (then the replay uses its running max). Float arrays must be finite."""
+
+    TYPE: ClassVar[str] = "transitions"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
+                                        "data": "arrays", "priorities": "array?"}
+    actor_id: str
+    policy_version: int
+    seq: int
+    data: dict[str, np.ndarray]
+    priorities: np.ndarray | None = None
+
+    @property
+    def batch_size(self) -> int:
+        return int(next(iter(self.data.values())).shape[0])
+
+    def _validate(self) -> None:
+        b = None
+        for k, a in self.data.items():
+            if a.ndim == 0:
+                raise ProtocolError(f"data.{k}", "must have a batch dimension", "shape")
+            if b is None:
+                b = a.shape[0]
+            elif a.shape[0] != b:
+                raise ProtocolError(f"data.{k}", f"batch size {a.shape[0]} differs from {b}", "batch")
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(f"data.{k}", "contains NaN or Inf", "nonfinite")
+        if b == 0:
+            raise ProtocolError("data", "batch is empty", "batch")
+        if self.priorities is not None:
+            _require_1d("priorities", self.priorities, "f", b)
+            _require_finite("priorities", self.priorities, nonneg=True)
+
+
+@dataclass(frozen=True)
+class SampleRequest(Message):
+    """Learner -> replay (query payload): sample ``batch_size`` items with IS exponent ``beta``."""
+
+    TYPE: ClassVar[str] = "sample_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"request_id": "uint", "batch_size": "uint", "beta": "float"}
+    request_id: int
+    batch_size: int
+    beta: float
+
+    def _validate(self) -> None:
+        if not 1 <= self.batch_size <= 65536:
+            raise ProtocolError("batch_size", f"{self.batch_size} is outside 1..65536", "field")
+        if not 0.0 <= self.beta <= 1.0:
+            raise ProtocolError("beta", f"{self.beta} is outside [0, 1]", "field")
+
+
+@dataclass(frozen=True)
+class SampleReply(Message):
+    """Replay -> learner (query reply). ``status`` is ``"ok"`` (then ``keys`` int64[B],
+    ``probabilities`` float64[B], ``weights`` float32[B] and ``data`` are set) or ``"not_ready"``
+    (then ``reason`` says why, e.g. ``"min_size 1000 > size 12"``)."""
+
+    TYPE: ClassVar[str] = "sample_reply"
+    SCHEMA: ClassVar[dict[str, str]] = {"request_id": "uint", "status": "str", "reason": "str",
+                                        "replay_size": "uint", "keys": "array?",
+                                        "probabilities": "array?", "weights": "array?",
+                                        "data": "arrays?"}
+    request_id: int
+    status: str
+    reason: str = ""
+    replay_size: int = 0
+    keys: np.ndarray | None = None
+    probabilities: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    data: dict[str, np.ndarray] | None = None
+
+    def _validate(self) -> None:
+        if self.status not in ("ok", "not_ready"):
+            raise ProtocolError("status", f"{self.status!r} is not ok or not_ready", "field")
+        if self.status == "ok":
+            if self.keys is None or self.probabilities is None or self.weights is None or self.data is None:
+                raise ProtocolError("keys", "an ok reply needs keys, probabilities, weights and data", "field")
+            _require_1d("keys", self.keys, "i")
+            b = self.keys.shape[0]
+            _require_1d("probabilities", self.probabilities, "f", b)
+            _require_1d("weights", self.weights, "f", b)
+            _require_finite("weights", self.weights, nonneg=True)
+            for k, a in self.data.items():
+                if a.ndim == 0 or a.shape[0] != b:
+                    raise ProtocolError(f"data.{k}", f"batch size differs from {b}", "batch")
+
+
+@dataclass(frozen=True)
+class PriorityUpdate(Message):
+    """Learner -> replay: new priorities (|TD error|) for sampled keys. int64[K], float32[K]."""
+
+    TYPE: ClassVar[str] = "priorities"
+    SCHEMA: ClassVar[dict[str, str]] = {"keys": "array", "priorities": "array"}
+    keys: np.ndarray
+    priorities: np.ndarray
+
+    def _validate(self) -> None:
+        _require_1d("keys", self.keys, "i")
+        _require_1d("priorities", self.priorities, "f", self.keys.shape[0])
+        _require_finite("priorities", self.priorities, nonneg=True)
+
+
+@dataclass(frozen=True)
+class Weights(Message):
+    """Learner -> actors: network parameters ``params`` (``{name: array}``, the torch
+    ``state_dict`` names) at ``version`` (strictly increasing over the run, also across resumes).
+    ``arch`` is a fingerprint of the network's shapes so a mismatched actor refuses them."""
+
+    TYPE: ClassVar[str] = "weights"
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "uint", "learner_id": "name", "arch": "str",
+                                        "updates": "uint", "params": "arrays"}
+    version: int
+    learner_id: str
+    arch: str
+    updates: int
+    params: dict[str, np.ndarray]
+
+    def _validate(self) -> None:
+        for k, a in self.params.items():
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(f"params.{k}", "contains NaN or Inf", "nonfinite")
+
+
+@dataclass(frozen=True)
+class Gradients(Message):
+    """A3C worker -> learner: gradients of the loss w.r.t. each parameter (``{name: array}`` with
+    the parameter's shape) computed from parameters at ``version``, over ``steps`` env steps."""
+
+    TYPE: ClassVar[str] = "gradients"
+    SCHEMA: ClassVar[dict[str, str]] = {"worker_id": "name", "version": "uint", "steps": "uint",
+                                        "grads": "arrays"}
+    worker_id: str
+    version: int
+    steps: int
+    grads: dict[str, np.ndarray]
+
+    def _validate(self) -> None:
+        for k, a in self.grads.items():
+            if a.dtype.kind != "f":
+                raise ProtocolError(f"grads.{k}", f"dtype {a.dtype.name} is not a float", "dtype")
+            if not np.isfinite(a).all():
+                raise ProtocolError(f"grads.{k}", "contains NaN or Inf", "nonfinite")
+
+
+@dataclass(frozen=True)
+class EpisodeStats(Message):
+    """Actor -> anyone: finished episodes since the last message. float32[K] returns,
+    int32/int64[K] lengths; ``env_steps`` is the actor's total env steps so far."""
+
+    TYPE: ClassVar[str] = "episodes"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "slot": "int", "epsilon": "float",
+                                        "policy_version": "int", "env_steps": "uint",
+                                        "returns": "array", "lengths": "array"}
+    actor_id: str
+    slot: int
+    epsilon: float
+    policy_version: int
+    env_steps: int
+    returns: np.ndarray
+    lengths: np.ndarray
+
+    def _validate(self) -> None:
+        _require_1d("returns", self.returns, "f")
+        _require_finite("returns", self.returns)
+        _require_1d("lengths", self.lengths, "iu", self.returns.shape[0])
+
+
+@dataclass(frozen=True)
+class EvalResult(Message):
+    """Evaluator -> anyone: greedy episodes played with weights ``version``. float32[K]."""
+
+    TYPE: ClassVar[str] = "eval"
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "uint", "env_steps": "uint",
+                                        "returns": "array"}
+    version: int
+    updates: int
+    env_steps: int
+    returns: np.ndarray
+
+    def _validate(self) -> None:
+        _require_1d("returns", self.returns, "f")
+        _require_finite("returns", self.returns)
+
+
+@dataclass(frozen=True)
+class Stats(Message):
+    """Any process -> anyone: a flat map of numbers/strings (rates, counters, sizes)."""
+
+    TYPE: ClassVar[str] = "stats"
+    SCHEMA: ClassVar[dict[str, str]] = {"role": "name", "id": "name", "time": "float", "values": "map"}
+    role: str
+    id: str
+    time: float
+    values: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SlotRequest(Message):
+    """Actor -> slot service: ask for an exploration slot; ``previous`` is the slot it had
+    (-1 if none) so a returning actor can get it back."""
+
+    TYPE: ClassVar[str] = "slot_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "previous": "int"}
+    actor_id: str
+    previous: int = -1
+
+
+@dataclass(frozen=True)
+class SlotReply(Message):
+    """Slot service -> actor: the slot index granted."""
+
+    TYPE: ClassVar[str] = "slot_reply"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "slot": "uint"}
+    actor_id: str
+    slot: int

@@ -1,0 +1,172 @@
+"""The client actors and the learner use to talk to the replay service over Zenoh.
+
+It has the verbs of the in-memory replay (``insert``, ``sample``, ``update_priorities``) so the
+same contract tests run against both, plus :class:`SamplePrefetcher`, which keeps several sample
+requests in flight from a background thread so that a training step never waits on the network
+when data is available.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import threading
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import NotReady, ProtocolError, RemoteTimeout
+from zenrl.common.transport import Node
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Sampled:
+    """A sampled batch. keys int64[B], probabilities float64[B], weights float32[B] (IS weights
+    normalised by their max), data ``{name: array[B, ...]}``; ``replay_size`` at sampling time."""
+
+    keys: np.ndarray
+    probabilities: np.ndarray
+    weights: np.ndarray
+    data: dict[str, np.ndarray]
+    replay_size: int
+
+
+class ZenohReplayClient:
+    """Networked replay: ``insert`` publishes a :class:`TransitionBatch` (BLOCK), ``sample``
+    queries ``replay/sample``, ``update_priorities`` publishes a :class:`PriorityUpdate`."""
+
+    def __init__(self, node: Node, keys: P.Keys, actor_id: str = "client", timeout_s: float = 5.0,
+                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self.node = node
+        self.keys = keys
+        self.actor_id = P.check_name("actor_id", actor_id)
+        self.timeout_s = timeout_s
+        self.max_bytes = max_message_bytes
+        self._tx = None
+        self._prio = None
+        self._seq = itertools.count()
+        self._req = itertools.count(1)
+        self.sent_chunks = 0
+        self.failed_chunks = 0
+
+    def insert(self, batch: Mapping[str, np.ndarray], priorities: np.ndarray | None = None,
+               policy_version: int = -1) -> None:
+        """Publish one chunk. Raises ProtocolError if it would exceed the size cap."""
+        if self._tx is None:
+            self._tx = self.node.publisher(self.keys.transitions(self.actor_id))
+        msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
+                                data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32))
+        payload = msg.encode(self.max_bytes)
+        try:
+            self._tx.put(payload)
+            self.sent_chunks += 1
+        except Exception as e:  # zenoh.ZError when the session is gone; counted, not silent
+            self.failed_chunks += 1
+            log.warning("could not publish a chunk of %d transitions: %s", msg.batch_size, e)
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        if self._prio is None:
+            self._prio = self.node.publisher(self.keys.priorities)
+        self._prio.put(P.PriorityUpdate(keys=np.asarray(keys, np.int64),
+                                        priorities=np.asarray(priorities, np.float32)).encode(self.max_bytes))
+
+    def request_payload(self, batch_size: int, beta: float) -> bytes:
+        return P.SampleRequest(request_id=next(self._req), batch_size=int(batch_size), beta=float(beta)).encode()
+
+    def parse_reply(self, payload: bytes) -> Sampled:
+        """Decode a sample reply; raise :class:`NotReady` for a not-ready answer."""
+        rep = P.SampleReply.decode(payload, self.max_bytes)
+        if rep.status != "ok":
+            raise NotReady(rep.reason)
+        return Sampled(rep.keys, rep.probabilities, rep.weights, rep.data, rep.replay_size)
+
+    def sample(self, batch_size: int, beta: float) -> Sampled:
+        """Blocking sample; raises :class:`NotReady` or :class:`RemoteTimeout`."""
+        return self.parse_reply(self.node.query(self.keys.sample, self.request_payload(batch_size, beta), self.timeout_s))
+
+
+class SamplePrefetcher:
+    """Keeps ``in_flight`` sample requests outstanding and queues ready batches.
+
+    ``get(timeout)`` returns a :class:`Sampled` or ``None``. A not-ready reply or a timeout
+    backs off briefly before that request slot is re-issued (the replay answers not-ready at
+    once, so this never hangs). ``beta`` is read at request time from ``beta_fn()``.
+    """
+
+    def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4) -> None:
+        self.client = client
+        self.batch_size = batch_size
+        self.beta_fn = beta_fn
+        self.in_flight = in_flight
+        self._ready: queue.Queue[Sampled] = queue.Queue()
+        self._slots = threading.Semaphore(in_flight)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="sample-prefetch", daemon=True)
+        self.not_ready = 0
+        self.timeouts = 0
+        self.errors = 0
+        self.last_not_ready_reason = ""
+        self._backoff = threading.Event()
+
+    def start(self) -> "SamplePrefetcher":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            if not self._slots.acquire(timeout=0.1):
+                continue
+            if self._backoff.is_set():
+                self._backoff.clear()
+                self._stop.wait(0.05)
+            self.client.node.query_async(self.client.keys.sample,
+                                         self.client.request_payload(self.batch_size, self.beta_fn()),
+                                         self.client.timeout_s, self._on_reply)
+
+    def _on_reply(self, payload: bytes | None) -> None:
+        # Runs on a Zenoh thread: never block here. A request slot stays held until the
+        # consumer takes the batch (see get), so ready + in flight <= in_flight and the ready
+        # queue can never be full.
+        keep_slot = False
+        try:
+            if payload is None:
+                self.timeouts += 1
+                self._backoff.set()
+                return
+            try:
+                s = self.client.parse_reply(payload)
+            except NotReady as e:
+                self.not_ready += 1
+                self.last_not_ready_reason = str(e)
+                self._backoff.set()
+                return
+            except ProtocolError as e:
+                self.errors += 1
+                log.warning("bad sample reply: %s", e)
+                return
+            self._ready.put_nowait(s)
+            keep_slot = True
+        finally:
+            if not keep_slot:
+                self._slots.release()
+
+    def get(self, timeout_s: float = 1.0) -> Sampled | None:
+        """The next ready batch, or ``None`` after ``timeout_s``."""
+        try:
+            s = self._ready.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        self._slots.release()
+        return s
+
+
+__all__ = ["Sampled", "ZenohReplayClient", "SamplePrefetcher", "RemoteTimeout", "NotReady"]

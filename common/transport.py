@@ -1,0 +1,303 @@
+"""Zenoh sessions for zenrl processes: the only place (with the role service modules) that
+imports ``zenoh``.
+
+Facts this module is built on (see the project's notes on Zenoh 1.x):
+
+* every zenrl process is a ``client`` of one router (a Python process can itself be the router:
+  :func:`open_router`); multicast scouting is off and endpoints are explicit;
+* data that must arrive is put with ``CongestionControl.BLOCK`` (the default DROP loses data);
+  receivers must never stall for 5 s or the sender's link is closed, so receivers here either do
+  cheap work in the callback or hand off to a bounded queue with a counted drop policy;
+* large messages are refused before sending (:mod:`zenrl.common.protocol` caps sizes);
+* sessions are closed explicitly (:class:`Node` is a context manager; SIGTERM sets a stop event
+  so that the ``finally`` runs); never fork after ``zenoh.open()``: child processes use ``spawn``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+from typing import Any, Callable, Iterable
+
+import zenoh
+
+from zenrl.common.errors import RemoteTimeout, TransportError
+
+log = logging.getLogger(__name__)
+
+#: Environment variable naming the router endpoint clients connect to.
+ROUTER_ENV = "ZENRL_ROUTER"
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+_log_inited = False
+
+
+def init_zenoh_logging(level: str = "warn") -> None:
+    """Turn on Zenoh's own log (once per process). Without it, a link closed by the BLOCK fuse
+    or a dropped message is silent. ``RUST_LOG`` overrides ``level``."""
+    global _log_inited
+    if not _log_inited:
+        zenoh.init_log_from_env_or(level)
+        _log_inited = True
+
+
+def router_endpoint(explicit: str | None = None) -> str:
+    """The router endpoint: ``explicit`` if given, else ``$ZENRL_ROUTER``, else the default."""
+    return explicit or os.environ.get(ROUTER_ENV) or DEFAULT_ROUTER
+
+
+def _config(doc: dict[str, Any]) -> zenoh.Config:
+    return zenoh.Config.from_json5(json.dumps(doc))
+
+
+def client_config(endpoint: str, connect_timeout_s: float = 30.0,
+                  extra: dict[str, Any] | None = None) -> zenoh.Config:
+    """Client-mode config: connect to ``endpoint`` only, no scouting, wait up to
+    ``connect_timeout_s`` for the router to come up (0 fails at once)."""
+    doc: dict[str, Any] = {
+        "mode": "client",
+        "connect": {"endpoints": [endpoint], "timeout_ms": int(connect_timeout_s * 1000)},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    _merge(doc, extra or {})
+    return _config(doc)
+
+
+def router_config(listen: Iterable[str], extra: dict[str, Any] | None = None) -> zenoh.Config:
+    doc: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    _merge(doc, extra or {})
+    return _config(doc)
+
+
+def _merge(dst: dict[str, Any], src: dict[str, Any]) -> None:
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _merge(dst[k], v)
+        else:
+            dst[k] = v
+
+
+def open_router(listen: Iterable[str] = (DEFAULT_ROUTER,), config_file: str | None = None) -> zenoh.Session:
+    """Open an in-process Zenoh router (for ``zenrl run`` and tests). With ``config_file`` the
+    router is configured from that JSON5 file (e.g. ``deploy/zenoh/router.json5``)."""
+    init_zenoh_logging()
+    cfg = zenoh.Config.from_file(config_file) if config_file else router_config(listen)
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as e:
+        raise TransportError(f"could not start a Zenoh router on {list(listen)}: {e}") from e
+
+
+def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,
+                 extra: dict[str, Any] | None = None) -> zenoh.Session:
+    """Open a client session to the router (see :func:`router_endpoint`)."""
+    init_zenoh_logging()
+    ep = router_endpoint(endpoint)
+    try:
+        return zenoh.open(client_config(ep, connect_timeout_s, extra))
+    except zenoh.ZError as e:
+        raise TransportError(f"could not connect to the Zenoh router at {ep}: {e}") from e
+
+
+class Node:
+    """One process's Zenoh session plus the entities it declared; closes them all on exit.
+
+    Usage::
+
+        with Node(endpoint) as node:
+            pub = node.publisher(keys.transitions("a0"))
+            node.subscribe(keys.weights, on_weights)
+            ...
+
+    Every data publisher uses ``BLOCK`` congestion control; ``low_priority=True`` puts it at
+    ``DATA_LOW`` so that large weight messages do not delay small queries on the same link.
+    """
+
+    def __init__(self, endpoint: str | None = None, connect_timeout_s: float = 30.0,
+                 session: zenoh.Session | None = None, extra: dict[str, Any] | None = None) -> None:
+        self.session = session if session is not None else open_session(endpoint, connect_timeout_s, extra)
+        self._entities: list[Any] = []
+        self._closed = False
+
+    # -- context management ---------------------------------------------------------------
+    def __enter__(self) -> "Node":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for e in reversed(self._entities):
+            try:
+                e.undeclare()
+            except zenoh.ZError as err:  # session may already be gone (router down)
+                log.debug("undeclare failed: %s", err)
+        self._entities.clear()
+        self.session.close()
+
+    # -- declarations ---------------------------------------------------------------------
+    def publisher(self, key: str, low_priority: bool = False, express: bool = False) -> zenoh.Publisher:
+        pub = self.session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.DATA_LOW if low_priority else zenoh.Priority.DATA,
+            express=express,
+        )
+        self._entities.append(pub)
+        return pub
+
+    def put(self, key: str, payload: bytes, low_priority: bool = False) -> None:
+        """One-off put with BLOCK congestion control."""
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK,
+                         priority=zenoh.Priority.DATA_LOW if low_priority else zenoh.Priority.DATA)
+
+    def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> zenoh.Subscriber:
+        """Call ``callback(key, payload_bytes)`` for each sample, on Zenoh's thread for this
+        subscriber (calls are serialized). The callback must return quickly and must not raise;
+        exceptions are logged and swallowed so that one bad message stops nothing."""
+
+        def handler(sample: zenoh.Sample) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # a handler bug must not kill Zenoh's delivery thread
+                log.exception("subscriber callback on %s failed", key)
+
+        sub = self.session.declare_subscriber(key, handler)
+        self._entities.append(sub)
+        return sub
+
+    def subscribe_latest(self, key: str) -> "LatestValue":
+        """Keep only the newest payload on ``key`` (never blocks the sender)."""
+        lv = LatestValue()
+        self.subscribe(key, lv.set)
+        return lv
+
+    def queryable(self, key: str, handler: Callable[[bytes], bytes | None]) -> zenoh.Queryable:
+        """Answer queries on ``key``: ``handler(request_payload) -> reply_payload`` (``None``
+        sends no reply). The query is always finished, so callers never wait for a timeout."""
+
+        def on_query(query: zenoh.Query) -> None:
+            with query:
+                try:
+                    req = query.payload.to_bytes() if query.payload is not None else b""
+                    rep = handler(req)
+                    if rep is not None:
+                        query.reply(query.key_expr, rep)
+                except Exception:  # one bad query must not stop the service
+                    log.exception("queryable %s failed", key)
+
+        q = self.session.declare_queryable(key, on_query)
+        self._entities.append(q)
+        return q
+
+    def query(self, key: str, payload: bytes | None = None, timeout_s: float = 5.0) -> bytes:
+        """Send one query and return the first OK reply's payload; raise
+        :class:`RemoteTimeout` if none arrives within ``timeout_s``."""
+        replies = self.session.get(key, payload=payload, timeout=timeout_s)
+        for reply in replies:
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            log.warning("error reply on %s: %s", key, reply.err.payload.to_string() if reply.err else "?")
+        raise RemoteTimeout(f"no reply on {key} within {timeout_s} s")
+
+    def query_async(self, key: str, payload: bytes | None, timeout_s: float,
+                    on_reply: Callable[[bytes | None], None]) -> None:
+        """Send a query without waiting; ``on_reply(payload)`` is called once with the first OK
+        reply, or with ``None`` if there was none before the timeout."""
+        done = threading.Event()
+
+        def cb(reply: zenoh.Reply) -> None:
+            if reply.ok is not None and not done.is_set():
+                done.set()
+                on_reply(reply.ok.payload.to_bytes())
+
+        def on_drop() -> None:  # called when the query is finalised (all replies or timeout)
+            if not done.is_set():
+                done.set()
+                on_reply(None)
+
+        self.session.get(key, zenoh.handlers.Callback(cb, on_drop), payload=payload, timeout=timeout_s)
+
+    def token(self, key: str) -> Any:
+        """Declare a liveliness token (undeclared on close)."""
+        tok = self.session.liveliness().declare_token(key)
+        self._entities.append(tok)
+        return tok
+
+    def watch_alive(self, key: str, on_change: Callable[[str, bool], None]) -> Any:
+        """``on_change(key, alive)`` for liveliness tokens matching ``key`` (existing ones
+        first). ``alive=False`` means *unreachable*, not necessarily dead."""
+
+        def handler(sample: zenoh.Sample) -> None:
+            try:
+                on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback on %s failed", key)
+
+        sub = self.session.liveliness().declare_subscriber(key, handler, history=True)
+        self._entities.append(sub)
+        return sub
+
+    def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
+        """Keys of the liveliness tokens alive now that match ``key``."""
+        return [str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout_s) if r.ok is not None]
+
+
+class LatestValue:
+    """A thread-safe slot holding the newest payload (a RingChannel of one, for callbacks)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._value: bytes | None = None
+        self._count = 0
+        self._event = threading.Event()
+
+    def set(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            self._value = payload
+            self._count += 1
+        self._event.set()
+
+    def take(self) -> bytes | None:
+        """Return the newest payload not yet taken, or ``None``."""
+        with self._lock:
+            v, self._value = self._value, None
+            self._event.clear()
+            return v
+
+    def wait(self, timeout_s: float) -> bytes | None:
+        self._event.wait(timeout_s)
+        return self.take()
+
+    @property
+    def received(self) -> int:
+        return self._count
+
+
+def install_stop_signals(stop: threading.Event) -> None:
+    """SIGTERM and SIGINT set ``stop`` (so the process closes its session and saves state)
+    instead of killing the interpreter. Call from the main thread."""
+
+    def handler(signum: int, _frame: Any) -> None:
+        log.info("signal %s received, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def spawn_context() -> multiprocessing.context.SpawnContext:
+    """The only start method zenrl uses for child processes: forking after ``zenoh.open()``
+    hangs the child."""
+    return multiprocessing.get_context("spawn")

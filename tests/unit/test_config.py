@@ -1,0 +1,48 @@
+"""Config layers and validation."""
+
+import pytest
+
+from zenrl.common.config import describe_options, load_config
+from zenrl.common.errors import ConfigError
+
+
+def test_layers(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("learner:\n  lr: 0.001\n  batch_size: 64\nactor:\n  num_actors: 3\n")
+    env = {"ZENRL__LEARNER__BATCH_SIZE": "32", "ZENRL_ROUTER": "tcp/10.0.0.1:7447"}
+    cfg = load_config(f, ["actor.num_actors=5"], environ=env)
+    assert cfg.learner.lr == 0.001          # file
+    assert cfg.learner.batch_size == 32     # env beats file
+    assert cfg.actor.num_actors == 5        # --set beats file
+    assert cfg.transport.router == "tcp/10.0.0.1:7447"
+    assert cfg.replay.alpha == 0.6          # default
+
+
+def test_errors_name_option_and_value(tmp_path):
+    with pytest.raises(ConfigError, match=r"replay\.alpha.*got 3"):
+        load_config(None, ["replay.alpha=3"], environ={})
+    with pytest.raises(ConfigError, match=r"learner\.bogus"):
+        load_config(None, ["learner.bogus=1"], environ={})
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "missing.yaml", environ={})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- a list\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(bad, environ={})
+    with pytest.raises(ConfigError, match="network.hidden"):
+        load_config(None, ["network.hidden=[]"], environ={})
+    with pytest.raises(ConfigError, match="must look like"):
+        load_config(None, ["nonsense"], environ={})
+
+
+def test_frozen():
+    cfg = load_config(None, environ={})
+    with pytest.raises(Exception):
+        cfg.seed = 3  # type: ignore[misc]
+
+
+def test_every_option_is_documented():
+    rows = describe_options()
+    assert len(rows) > 40
+    missing = [name for name, _, desc in rows if not desc]
+    assert not missing, missing

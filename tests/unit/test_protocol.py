@@ -1,0 +1,159 @@
+"""Wire protocol: round trip of every message type, and every rejection path."""
+
+import msgpack
+import numpy as np
+import pytest
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import ProtocolError
+
+
+def _batch(b=5):
+    return {
+        "obs/lidar": np.random.default_rng(0).random((b, 360), dtype=np.float32),
+        "obs/image": np.zeros((b, 8, 8, 3), np.uint8),
+        "action": np.arange(b, dtype=np.int64),
+        "reward": np.linspace(-1, 1, b).astype(np.float32),
+        "terminated": np.array([True, False, False, True, False][:b]),
+    }
+
+
+MESSAGES = [
+    P.TransitionBatch("actor-1", 7, 3, _batch(), np.ones(5, np.float32)),
+    P.TransitionBatch("actor-1", -1, 0, _batch(), None),
+    P.SampleRequest(4, 512, 0.4),
+    P.SampleReply(4, "not_ready", "min_size 10 > size 3", 3),
+    P.SampleReply(4, "ok", "", 100, np.arange(5, dtype=np.int64), np.full(5, 0.01), np.ones(5, np.float32), _batch()),
+    P.PriorityUpdate(np.arange(3, dtype=np.int64), np.array([0.5, 1.0, 2.0], np.float32)),
+    P.Weights(3, "learner", "mlp:4-64-2", 99, {"w": np.ones((2, 3), np.float32), "b": np.zeros(3, np.float32)}),
+    P.Gradients("w0", 2, 40, {"w": np.ones((2, 3), np.float32)}),
+    P.EpisodeStats("a0", 1, 0.1, 3, 1000, np.array([1.5, 2.0], np.float32), np.array([10, 20], np.int32)),
+    P.EvalResult(3, 100, 5000, np.array([500.0], np.float32)),
+    P.Stats("replay", "r0", 12.5, {"size": 3, "rate": 1.5, "name": "x"}),
+    P.SlotRequest("a0", -1),
+    P.SlotReply("a0", 4),
+]
+
+
+def _eq(a, b):
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_eq(a[k], b[k]) for k in a)
+    return a == b
+
+
+@pytest.mark.parametrize("msg", MESSAGES, ids=lambda m: m.TYPE)
+def test_round_trip(msg):
+    out = type(msg).decode(msg.encode())
+    for f in msg.__dataclass_fields__:
+        assert _eq(getattr(msg, f), getattr(out, f)), f
+    assert type(P.decode_any(msg.encode())) is type(msg)
+
+
+def test_arrays_are_zero_copy_views():
+    msg = P.TransitionBatch.decode(MESSAGES[0].encode())
+    assert not msg.data["obs/lidar"].flags.writeable
+
+
+def _env(**over):
+    env = msgpack.unpackb(MESSAGES[0].encode(), raw=False)
+    env.update(over)
+    return env
+
+
+def _raises(payload, field, reason=None, cls=P.TransitionBatch):
+    with pytest.raises(ProtocolError) as ei:
+        cls.decode(payload if isinstance(payload, bytes) else msgpack.packb(payload, use_bin_type=True))
+    assert ei.value.field == field, str(ei.value)
+    assert field in str(ei.value)
+    if reason:
+        assert ei.value.reason == reason
+    return ei.value
+
+
+def test_garbage_and_non_map():
+    _raises(b"\xc1\xff garbage", "payload", "malformed")
+    _raises(msgpack.packb([1, 2, 3]), "payload", "malformed")
+    with pytest.raises(ProtocolError):
+        P.TransitionBatch.decode("not bytes")  # type: ignore[arg-type]
+
+
+def test_version_and_type():
+    _raises(_env(v=2), "v", "version")
+    _raises({k: v for k, v in _env().items() if k != "v"}, "v", "version")
+    _raises(_env(t="weights"), "t", "type")
+    with pytest.raises(ProtocolError) as ei:
+        P.decode_any(msgpack.packb(_env(t="nope")))
+    assert ei.value.field == "t"
+
+
+def test_missing_and_unknown_fields():
+    env = _env()
+    del env["actor_id"]
+    _raises(env, "actor_id", "field")
+    _raises(_env(extra=1), "extra", "field")
+
+
+def test_bad_scalars():
+    _raises(_env(seq=-1), "seq", "field")
+    _raises(_env(policy_version="x"), "policy_version", "field")
+    _raises(_env(actor_id="a/b*"), "actor_id", "name")
+    _raises(msgpack.packb({"v": 1, "t": "sample_request", "request_id": 1, "batch_size": 0, "beta": 0.4}), "batch_size", cls=P.SampleRequest)
+    _raises(msgpack.packb({"v": 1, "t": "sample_request", "request_id": 1, "batch_size": 8, "beta": float("nan")}), "beta", "nonfinite", cls=P.SampleRequest)
+
+
+def test_bad_arrays():
+    env = _env()
+    env["data"]["action"]["dtype"] = "object"
+    _raises(env, "data.action.dtype", "dtype")
+    env = _env()
+    env["data"]["action"]["shape"] = [6]
+    _raises(env, "data.action.data", "shape")
+    env = _env()
+    env["data"]["action"]["shape"] = [-5]
+    _raises(env, "data.action.shape", "shape")
+    env = _env()
+    env["data"]["action"] = {"dtype": "int64", "shape": [5]}
+    _raises(env, "data.action", "array")
+
+
+def test_inconsistent_batch():
+    b = _batch()
+    b["action"] = np.arange(4, dtype=np.int64)
+    _raises(P.TransitionBatch("a", 0, 0, b).encode(), "data.action", "batch")
+    _raises(P.TransitionBatch("a", 0, 0, _batch(), np.ones(4, np.float32)).encode(), "priorities", "batch")
+
+
+def test_nonfinite_rewards_and_priorities():
+    b = _batch()
+    b["reward"] = b["reward"].copy()
+    b["reward"][2] = np.nan
+    _raises(P.TransitionBatch("a", 0, 0, b).encode(), "data.reward", "nonfinite")
+    _raises(P.TransitionBatch("a", 0, 0, _batch(), np.array([1, 1, np.inf, 1, 1], np.float32)).encode(), "priorities", "nonfinite")
+    _raises(P.TransitionBatch("a", 0, 0, _batch(), np.array([1, 1, -1, 1, 1], np.float32)).encode(), "priorities", "negative")
+    g = P.Gradients("w", 0, 1, {"w": np.array([np.nan], np.float32)}).encode()
+    _raises(g, "grads.w", "nonfinite", cls=P.Gradients)
+
+
+def test_size_caps():
+    big = P.TransitionBatch("a", 0, 0, {"x": np.zeros((1000, 100), np.float32)})
+    with pytest.raises(ProtocolError) as ei:
+        big.encode(max_bytes=10_000)
+    assert ei.value.reason == "size"
+    payload = big.encode()
+    with pytest.raises(ProtocolError) as ei:
+        P.TransitionBatch.decode(payload, max_bytes=10_000)
+    assert ei.value.field == "payload" and ei.value.reason == "size"
+
+
+def test_keys():
+    k = P.Keys("run1")
+    assert k.transitions("a0") == "zenrl/run1/transitions/a0"
+    assert k.alive("actor", "a0") == "zenrl/run1/alive/actor/a0"
+    assert k.parse_alive("zenrl/run1/alive/actor/a0") == ("actor", "a0")
+    for bad in ["", "a/b", "a*", "x" * 65, "$x"]:
+        with pytest.raises(ProtocolError):
+            P.Keys(bad)
+        with pytest.raises(ProtocolError):
+            k.transitions(bad)
