@@ -62,8 +62,24 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
     run_id = cfg.run_id or "default"
     stop = threading.Event()
     install_stop_signals(stop)
+    _watch_parent(stop)
     fn(cfg, run_id, stop)
     return 0
+
+
+def _watch_parent(stop: threading.Event) -> None:
+    """Started by ``zenrl run``: stop when the launcher is gone (no orphaned processes)."""
+    parent = os.environ.get("ZENRL_PARENT_PID")
+    if not parent:
+        return
+
+    def watch() -> None:
+        while not stop.wait(1.0):
+            if os.getppid() != int(parent):
+                log.warning("launcher (pid %s) is gone; stopping", parent)
+                stop.set()
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -114,6 +130,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"actor.num_actors={args.actors}")
     if args.no_progress:
         extra.append("progress=false")
+    if args.resume and not args.config:
+        args.config = os.path.join(args.resume, "config.yaml")
     cfg = resolve(args, extra)
     return launch(cfg, resume_dir=args.resume)
 

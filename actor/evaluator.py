@@ -1,0 +1,97 @@
+"""Evaluator process (``zenrl evaluator``): greedy episodes with the latest weights at
+intervals, on seeds separate from training; publishes :class:`EvalResult` and writes the mean
+and spread of the return to the run's metrics."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.service import WeightsFollower
+from zenrl.common import protocol as P
+from zenrl.common.config import RunConfig
+from zenrl.common.metrics import MetricsWriter
+from zenrl.common.networks import ActorCritic, QNetwork, num_actions, obs_spec, to_tensors
+from zenrl.common.transport import Node
+
+log = logging.getLogger(__name__)
+
+
+def greedy_action(net: torch.nn.Module, obs: dict[str, np.ndarray]) -> np.ndarray:
+    """int64[E]: argmax Q for a Q network, argmax of the logits for an actor-critic."""
+    with torch.no_grad():
+        out = net(to_tensors(obs))
+        if isinstance(out, tuple):
+            out = out[0]
+        return out.argmax(1).numpy()
+
+
+def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: float = 0.0,
+                  rng: np.random.Generator | None = None) -> np.ndarray:
+    """Play one episode in each env of ``envs`` (seeded ``seed + i``); float32[E] returns."""
+    envs.seed = seed
+    obs = envs.reset()
+    E = envs.num_envs
+    returns = np.zeros(E, np.float64)
+    finished = np.zeros(E, bool)
+    n_act = num_actions(envs.single_action_space)
+    rng = rng or np.random.default_rng(seed)
+    while not finished.all():
+        a = greedy_action(net, obs)
+        if epsilon > 0:
+            r = rng.random(E) < epsilon
+            a[r] = rng.integers(0, n_act, int(r.sum()))
+        res = envs.step(a)
+        returns += np.where(finished, 0.0, res.rewards)
+        finished |= res.terminated | res.truncated
+        obs = res.obs
+    return returns.astype(np.float32)
+
+
+def build_policy_net(cfg: RunConfig, envs: EnvBatch) -> torch.nn.Module:
+    spec = obs_spec(envs.single_observation_space)
+    n = num_actions(envs.single_action_space)
+    cls = ActorCritic if cfg.algo == "a3c" else QNetwork
+    return cls(spec, n, cfg.network).eval()
+
+
+def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
+    """Entry point of ``zenrl evaluator``."""
+    ecfg = cfg.evaluator
+    keys = P.Keys(run_id)
+    torch.set_num_threads(1)
+    envs = EnvBatch(cfg.env, ecfg.episodes, seed=cfg.seed + ecfg.seed_offset)
+    net = build_policy_net(cfg, envs)
+    metrics = MetricsWriter(Path(cfg.runs_dir) / run_id)
+    rounds = 0
+    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+        follower = WeightsFollower(node, keys, net, cfg.transport.max_message_bytes)
+        pub = node.publisher(keys.eval)
+        node.token(keys.alive("evaluator", "evaluator"))
+        follower.fetch_initial(min(2.0, cfg.transport.query_timeout_s))
+        evaluated = -1
+        next_t = time.monotonic()
+        try:
+            while not stop.wait(max(0.0, next_t - time.monotonic())):
+                next_t = time.monotonic() + ecfg.interval_s
+                follower.maybe_load()
+                if follower.version < 0 or follower.version == evaluated:
+                    next_t = time.monotonic() + 0.5
+                    continue
+                evaluated = follower.version
+                rets = play_episodes(net, envs, cfg.seed + ecfg.seed_offset + rounds * ecfg.episodes, ecfg.epsilon)
+                rounds += 1
+                pub.put(P.EvalResult(version=follower.version, updates=follower.updates, env_steps=0, returns=rets).encode())
+                metrics.write("eval", follower.updates, {"return_mean": float(rets.mean()), "return_std": float(rets.std()),
+                                                         "return_min": float(rets.min()), "return_max": float(rets.max()),
+                                                         "version": follower.version})
+                log.info("eval v%d (%d updates): return %.1f +- %.1f", follower.version, follower.updates, rets.mean(), rets.std())
+        finally:
+            metrics.close()
+            envs.close()

@@ -1,0 +1,114 @@
+"""Vectorized n-step transition builder for E envs stepped together (Ape-X actors).
+
+For a start step ``j`` the emitted transition holds::
+
+    obs      = s_j                       action = a_j
+    reward   = sum_{k=0}^{m-1} gamma^k r_{j+k}      n = m  (m <= n_step)
+    next_obs = s_{j+m}                   terminated = whether the episode terminated at j+m-1
+
+``m = n_step`` in mid-episode; at an episode end every pending start is emitted with the
+steps that remain (``m < n_step``). ``terminated`` stops bootstrapping
+(``discount = gamma ** m * (1 - terminated)``); ``truncated`` bootstraps from ``next_obs``, which
+is then the episode's final observation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Emitted:
+    """Transitions emitted by one :meth:`NStepBuilder.add`. ``data`` fields have leading dim K;
+    ``env`` int64[K] says which env each came from; ``q_sa`` float32[K] is Q(s_j, a_j) as
+    computed when acting (for the initial priority); ``pending`` bool[K] marks transitions whose
+    ``next_obs`` is the obs the actor will act on next (bootstrap from the next forward pass)."""
+
+    data: dict[str, np.ndarray]
+    env: np.ndarray
+    q_sa: np.ndarray
+    pending: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.env.shape[0])
+
+
+class NStepBuilder:
+    def __init__(self, num_envs: int, n_step: int, gamma: float) -> None:
+        if n_step < 1:
+            raise ValueError(f"n_step must be >= 1, got {n_step}")
+        self.E, self.n, self.gamma = num_envs, n_step, gamma
+        self.count = np.zeros(num_envs, np.int64)
+        self.t = 0
+        self._obs: dict[str, np.ndarray] | None = None
+        self._act = np.zeros((n_step, num_envs), np.int64)
+        self._rew = np.zeros((n_step, num_envs), np.float64)
+        self._q = np.zeros((n_step, num_envs), np.float32)
+        self._disc = gamma ** np.arange(n_step, dtype=np.float64)
+
+    def reset(self) -> None:
+        self.count[:] = 0
+
+    def add(self, obs: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray, q_sa: np.ndarray,
+            next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray) -> Emitted:
+        """Record step t for every env. ``obs``: s_t (what was acted on); ``next_obs``: s_{t+1}
+        (the final observation for envs whose episode ended). All arrays have leading dim E."""
+        n, E = self.n, self.E
+        if self._obs is None:
+            self._obs = {k: np.zeros((n, E) + v.shape[1:], v.dtype) for k, v in obs.items()}
+        pos = self.t % n
+        for k, v in obs.items():
+            self._obs[k][pos] = v
+        self._act[pos] = actions
+        self._rew[pos] = rewards
+        self._q[pos] = q_sa
+        self.count += 1
+        done = terminated | truncated
+        parts: list[tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]] = []
+
+        full = np.flatnonzero((self.count == n) & ~done)
+        if full.size:
+            start = (self.t - n + 1) % n
+            order = (start + np.arange(n)) % n
+            R = self._disc @ self._rew[order][:, full]
+            data = self._gather(start, full, next_obs, R, np.full(full.size, n, np.uint8), False, False)
+            parts.append((data, full, self._q[start, full], np.ones(full.size, bool)))
+            self.count[full] = n - 1
+
+        for e in np.flatnonzero(done):
+            c = int(self.count[e])
+            for m in range(c, 0, -1):  # starts j = t-m+1 .. t, with m steps remaining
+                start = (self.t - m + 1) % n
+                order = (start + np.arange(m)) % n
+                R = np.array([self._disc[:m] @ self._rew[order, e]])
+                idx = np.array([e])
+                data = self._gather(start, idx, next_obs, R, np.array([m], np.uint8), bool(terminated[e]), bool(truncated[e]))
+                parts.append((data, idx, self._q[start, idx], np.zeros(1, bool)))
+            self.count[e] = 0
+        self.t += 1
+
+        if not parts:
+            return Emitted({}, np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool))
+        if len(parts) == 1:
+            d, env, q, p = parts[0]
+            return Emitted(d, env, q, p)
+        data = {k: np.concatenate([p[0][k] for p in parts]) for k in parts[0][0]}
+        return Emitted(data, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
+                       np.concatenate([p[3] for p in parts]))
+
+    def _gather(self, start: int, envs: np.ndarray, next_obs: dict[str, np.ndarray], R: np.ndarray,
+                m: np.ndarray, terminated: bool, truncated: bool) -> dict[str, np.ndarray]:
+        K = envs.size
+        out: dict[str, np.ndarray] = {}
+        for k, buf in self._obs.items():
+            out[k] = buf[start, envs]
+        out["action"] = self._act[start, envs]
+        out["reward"] = R.astype(np.float32)
+        for k, v in next_obs.items():
+            out["next_" + k] = v[envs]
+        out["terminated"] = np.full(K, terminated, bool)
+        out["truncated"] = np.full(K, truncated, bool)
+        out["n"] = m
+        return out

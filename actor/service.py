@@ -1,0 +1,219 @@
+"""Ape-X actor process (``zenrl actor``): E envs stepped as a batch, one batched forward per
+step, per-env epsilon from the Ape-X ladder, n-step transitions with initial priorities, chunks
+published to the replay, the newest weights taken between steps (never blocking).
+
+Priorities reuse the Q values computed for acting: a transition whose ``next_obs`` is the
+observation acted on at the next step is bootstrapped from that step's forward pass
+(``max_a Q(s', a)``, the actor has no target network); only transitions that end in a truncated
+episode need an extra forward pass on their final observation.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.nstep import Emitted, NStepBuilder
+from zenrl.common import protocol as P
+from zenrl.common.config import RunConfig
+from zenrl.common.errors import ProtocolError, RemoteTimeout
+from zenrl.common.exploration import env_epsilons
+from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, num_actions,
+                                   obs_spec, to_tensors)
+from zenrl.common.replay_client import ZenohReplayClient
+from zenrl.common.transport import Node
+
+log = logging.getLogger(__name__)
+
+
+class WeightsFollower:
+    """Holds the newest :class:`Weights` seen on the broadcast key and loads them into a
+    network when asked (``maybe_load``), refusing other architectures. Never blocks."""
+
+    def __init__(self, node: Node, keys: P.Keys, net: torch.nn.Module, max_bytes: int) -> None:
+        self.net = net
+        self.arch = arch_fingerprint(net)
+        self.version = -1
+        self.updates = 0
+        self.rejected = 0
+        self._max = max_bytes
+        self._keys = keys
+        self._node = node
+        self._latest = node.subscribe_latest(keys.weights)
+
+    def fetch_initial(self, timeout_s: float) -> bool:
+        """Ask the learner for its current weights (a restarted actor gets them promptly)."""
+        try:
+            payload = self._node.query(self._keys.weights_query, None, timeout_s)
+        except RemoteTimeout:
+            return False
+        return self._load(payload)
+
+    def maybe_load(self) -> bool:
+        payload = self._latest.take()
+        return payload is not None and self._load(payload)
+
+    def _load(self, payload: bytes) -> bool:
+        try:
+            w = P.Weights.decode(payload, self._max)
+            if w.arch != self.arch:
+                raise ProtocolError("arch", f"weights for {w.arch}, this network is {self.arch}", "arch")
+            if w.version <= self.version:
+                return False
+            arrays_to_params(self.net, w.params)
+        except (ProtocolError, ValueError) as e:
+            self.rejected += 1
+            log.warning("weights rejected: %s", e)
+            return False
+        self.version, self.updates = w.version, w.updates
+        return True
+
+
+class ApexActor:
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int) -> None:
+        self.cfg = cfg
+        acfg = cfg.actor
+        self.node = node
+        self.keys = P.Keys(run_id)
+        self.id = actor_id
+        self.slot = slot
+        torch.set_num_threads(acfg.torch_threads)
+        self.envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        self.spec = obs_spec(self.envs.single_observation_space)
+        self.n_actions = num_actions(self.envs.single_action_space)
+        torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
+        self.net = QNetwork(self.spec, self.n_actions, cfg.network).eval()
+        self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
+        self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
+        self.builder = NStepBuilder(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma)
+        self.gamma = cfg.learner.gamma
+        self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
+        self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
+        self.env_steps = 0
+        self._chunk: list[tuple[dict[str, np.ndarray], np.ndarray]] = []
+        self._chunk_len = 0
+        self._ep_returns: list[float] = []
+        self._ep_lengths: list[int] = []
+        self.sent_transitions = 0
+
+    # -- priorities ---------------------------------------------------------------------------
+    def _priorities(self, em: Emitted, boot: np.ndarray) -> np.ndarray:
+        d = em.data
+        disc = self.gamma ** d["n"].astype(np.float64) * (1.0 - d["terminated"])
+        return np.abs(d["reward"] + disc * boot - em.q_sa).astype(np.float32)
+
+    def _forward(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        with torch.no_grad():
+            return self.net(to_tensors(obs)).numpy()
+
+    def _queue(self, data: dict[str, np.ndarray], prio: np.ndarray) -> None:
+        if prio.size == 0:
+            return
+        self._chunk.append((data, prio))
+        self._chunk_len += prio.size
+        if self._chunk_len >= self.cfg.actor.chunk_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._chunk:
+            return
+        data = {k: np.concatenate([c[0][k] for c in self._chunk]) for k in self._chunk[0][0]}
+        prio = np.concatenate([c[1] for c in self._chunk])
+        self._chunk, self._chunk_len = [], 0
+        cs = self.cfg.actor.chunk_size
+        for i in range(0, prio.size, cs):
+            self.replay.insert({k: v[i:i + cs] for k, v in data.items()}, prio[i:i + cs], self.weights.version)
+        self.sent_transitions += prio.size
+
+    # -- main loop ----------------------------------------------------------------------------
+    def run(self, stop: threading.Event, max_steps: int | None = None) -> None:
+        eps_pub = self.node.publisher(self.keys.episodes(self.id))
+        stats_pub = self.node.publisher(self.keys.stats("actor", self.id))
+        self.node.token(self.keys.alive("actor", self.id))
+        if self.weights.fetch_initial(min(2.0, self.cfg.transport.query_timeout_s)):
+            log.info("actor %s starts with weights version %d", self.id, self.weights.version)
+        log.info("actor %s slot %d, %d envs, epsilon %.4g..%.4g", self.id, self.slot, len(self.eps), self.eps.min(), self.eps.max())
+        obs = self.envs.reset()
+        pending: Emitted | None = None
+        E = self.envs.num_envs
+        ar = np.arange(E)
+        last_report = time.monotonic()
+        steps = 0
+        poll = self.cfg.actor.weights_poll_steps
+        try:
+            while not stop.is_set() and (max_steps is None or steps < max_steps):
+                if steps % poll == 0:
+                    self.weights.maybe_load()
+                q = self._forward(obs)
+                if pending is not None:  # bootstrap last step's transitions from this forward pass
+                    self._queue(pending.data, self._priorities(pending, q[pending.env].max(1)))
+                    pending = None
+                actions = q.argmax(1)
+                explore = self.rng.random(E) < self.eps
+                if explore.any():
+                    actions[explore] = self.rng.integers(0, self.n_actions, int(explore.sum()))
+                res = self.envs.step(actions)
+                em = self.builder.add(obs, actions, res.rewards, q[ar, actions], res.next_obs, res.terminated, res.truncated)
+                if len(em):
+                    if em.pending.all():
+                        pending = em
+                    else:
+                        pending = _select(em, em.pending) if em.pending.any() else None
+                        done = _select(em, ~em.pending)
+                        boot = np.zeros(len(done), np.float64)
+                        tr = np.flatnonzero(done.data["truncated"] & ~done.data["terminated"])
+                        if tr.size:
+                            nxt = {k[len("next_"):]: v[tr] for k, v in done.data.items() if k.startswith("next_obs")}
+                            boot[tr] = self._forward(nxt).max(1)
+                        self._queue(done.data, self._priorities(done, boot))
+                obs = res.obs
+                steps += 1
+                self.env_steps += E
+                self._ep_returns += res.ep_returns
+                self._ep_lengths += res.ep_lengths
+                now = time.monotonic()
+                if now - last_report >= self.cfg.actor.episode_report_s:
+                    self._report(eps_pub, stats_pub, now - last_report)
+                    last_report = now
+        finally:
+            self._flush()
+            self._report(eps_pub, stats_pub, max(time.monotonic() - last_report, 1e-6))
+            self.envs.close()
+
+    def _report(self, eps_pub: Any, stats_pub: Any, dt: float) -> None:
+        if self._ep_returns:
+            eps_pub.put(P.EpisodeStats(actor_id=self.id, slot=self.slot, epsilon=float(self.eps.mean()),
+                                       policy_version=self.weights.version, env_steps=self.env_steps,
+                                       returns=np.array(self._ep_returns, np.float32),
+                                       lengths=np.array(self._ep_lengths, np.int64)).encode())
+            self._ep_returns, self._ep_lengths = [], []
+        stats_pub.put(P.Stats(role="actor", id=self.id, time=time.time(), values={
+            "env_steps": self.env_steps, "slot": self.slot, "policy_version": self.weights.version,
+            "sent_transitions": self.sent_transitions, "sent_chunks": self.replay.sent_chunks,
+            "failed_chunks": self.replay.failed_chunks, "weights_rejected": self.weights.rejected}).encode())
+
+
+def _select(em: Emitted, mask: np.ndarray) -> Emitted:
+    return Emitted({k: v[mask] for k, v in em.data.items()}, em.env[mask], em.q_sa[mask], em.pending[mask])
+
+
+def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | None = None, slot: int | None = None) -> None:
+    """Entry point of ``zenrl actor``."""
+    actor_id = actor_id or f"actor-{os.getpid()}"
+    num_slots = cfg.actor.ladder_size or cfg.actor.num_actors
+    if slot is None:
+        slot = cfg.actor.slot if cfg.actor.slot is not None else 0
+    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+        if cfg.algo == "a3c":
+            from zenrl.actor.a3c import A3CWorker
+
+            A3CWorker(cfg, node, run_id, actor_id, slot).run(stop)
+        else:
+            ApexActor(cfg, node, run_id, actor_id, slot, num_slots).run(stop)

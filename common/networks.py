@@ -1,0 +1,216 @@
+"""Networks shared by actors and learners: encoders per observation kind, a dueling Q head, an
+actor-critic head, and the helpers that turn Gymnasium spaces into flat array specs.
+
+Observations reach a network as a flat mapping of tensors named as in the replay: ``"obs"`` for
+a plain ``Box`` space, ``"obs/<key>"`` for each key of a ``Dict`` space. Shapes::
+
+    Box float (D...)            -> "obs":        float32[B, D...]   (flattened, MLP)
+    Box uint8 (H, W, C)         -> "obs":        uint8[B, H, W, C]  (Nature conv, /255 on device)
+    Dict {k: Box}               -> "obs/k":      one encoder per key, outputs concatenated
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Mapping
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from zenrl.common.config import NetworkConfig
+from zenrl.common.specs import ArraySpec
+
+
+# --------------------------------------------------------------------------------------------
+# Spaces -> specs
+# --------------------------------------------------------------------------------------------
+def obs_spec(space: gym.Space, prefix: str = "obs") -> dict[str, ArraySpec]:
+    """Flat spec of one observation: ``{"obs": ...}`` or ``{"obs/<key>": ...}``."""
+    if isinstance(space, gym.spaces.Dict):
+        out: dict[str, ArraySpec] = {}
+        for k, sub in space.spaces.items():
+            out.update(obs_spec(sub, f"{prefix}/{k}"))
+        return out
+    if isinstance(space, gym.spaces.Box):
+        dtype = "uint8" if space.dtype == np.uint8 else "float32"
+        return {prefix: ArraySpec(tuple(space.shape), dtype)}
+    if isinstance(space, gym.spaces.Discrete):
+        return {prefix: ArraySpec((), "int64")}
+    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+
+
+def flat_obs(obs, prefix: str = "obs") -> dict[str, np.ndarray]:
+    """Batched observation (array or dict of arrays, leading dim B) -> flat named arrays."""
+    if isinstance(obs, Mapping):
+        out: dict[str, np.ndarray] = {}
+        for k, v in obs.items():
+            out.update(flat_obs(v, f"{prefix}/{k}"))
+        return out
+    a = np.asarray(obs)
+    if a.dtype == np.float64:
+        a = a.astype(np.float32)
+    return {prefix: a}
+
+
+def rename_prefix(flat: Mapping[str, np.ndarray], old: str, new: str) -> dict[str, np.ndarray]:
+    """``{"next_obs/x": a}`` -> ``{"obs/x": a}`` (fields with other prefixes are dropped)."""
+    out = {}
+    for k, v in flat.items():
+        if k == old:
+            out[new] = v
+        elif k.startswith(old + "/"):
+            out[new + k[len(old):]] = v
+    return out
+
+
+def num_actions(space: gym.Space) -> int:
+    if not isinstance(space, gym.spaces.Discrete):
+        raise ValueError(f"zenrl's DQN and A3C need a Discrete action space, got {space}")
+    return int(space.n)
+
+
+# --------------------------------------------------------------------------------------------
+# Encoders
+# --------------------------------------------------------------------------------------------
+class MLPEncoder(nn.Module):
+    """float[B, *shape] -> float[B, prod(shape)] (flatten only; the trunk adds layers)."""
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        super().__init__()
+        self.out_dim = int(np.prod(shape)) if shape else 1
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(x.shape[0], -1).float()
+
+
+class ConvEncoder(nn.Module):
+    """Nature-DQN conv torso. uint8[B, H, W, C] -> float[B, F]; scaled by 1/255 on the device."""
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        super().__init__()
+        h, w, c = shape
+        if min(h, w) >= 36:
+            layers = [nn.Conv2d(c, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(), nn.Conv2d(64, 64, 3, 1), nn.ReLU()]
+        else:  # small images (e.g. 32x32): a lighter stack that still fits
+            layers = [nn.Conv2d(c, 32, 3, 2), nn.ReLU(), nn.Conv2d(32, 64, 3, 2), nn.ReLU()]
+        self.net = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():
+            self.out_dim = int(self.net(torch.zeros(1, c, h, w)).shape[1])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.permute(0, 3, 1, 2).float() * (1.0 / 255.0))
+
+
+class ObsEncoder(nn.Module):
+    """One encoder per observation field, outputs concatenated: ``{name: tensor[B, ...]}`` ->
+    float[B, F]."""
+
+    def __init__(self, spec: Mapping[str, ArraySpec], conv: bool = True) -> None:
+        super().__init__()
+        self.names = sorted(spec)
+        encs = {}
+        for name in self.names:
+            s = spec[name]
+            if conv and s.dtype == "uint8" and len(s.shape) == 3:
+                encs[name.replace("/", "__")] = ConvEncoder(s.shape)
+            else:
+                encs[name.replace("/", "__")] = MLPEncoder(s.shape)
+        self.encoders = nn.ModuleDict(encs)
+        self.out_dim = sum(e.out_dim for e in self.encoders.values())
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([self.encoders[n.replace("/", "__")](obs[n]) for n in self.names], dim=1)
+
+
+def mlp(in_dim: int, hidden: list[int]) -> tuple[nn.Sequential, int]:
+    layers: list[nn.Module] = []
+    d = in_dim
+    for h in hidden:
+        layers += [nn.Linear(d, h), nn.ReLU()]
+        d = h
+    return nn.Sequential(*layers), d
+
+
+class QNetwork(nn.Module):
+    """Q(s, .): ``{name: tensor[B, ...]}`` -> float32[B, A]. Dueling:
+    ``Q = V + A - mean(A)``."""
+
+    def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, cfg: NetworkConfig) -> None:
+        super().__init__()
+        self.encoder = ObsEncoder(spec, cfg.conv)
+        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden))
+        self.dueling = cfg.dueling
+        if cfg.dueling:
+            self.value = nn.Linear(d, 1)
+            self.advantage = nn.Linear(d, n_actions)
+        else:
+            self.q = nn.Linear(d, n_actions)
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        h = self.trunk(self.encoder(obs))
+        if self.dueling:
+            a = self.advantage(h)
+            return self.value(h) + a - a.mean(dim=1, keepdim=True)
+        return self.q(h)
+
+
+class ActorCritic(nn.Module):
+    """Policy and value: ``{name: tensor[B, ...]}`` -> (logits float32[B, A], value float32[B])."""
+
+    def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, cfg: NetworkConfig) -> None:
+        super().__init__()
+        self.encoder = ObsEncoder(spec, cfg.conv)
+        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden))
+        self.policy = nn.Linear(d, n_actions)
+        self.value = nn.Linear(d, 1)
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.trunk(self.encoder(obs))
+        return self.policy(h), self.value(h).squeeze(1)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters <-> arrays
+# --------------------------------------------------------------------------------------------
+def arch_fingerprint(net: nn.Module) -> str:
+    """A short string that differs when any parameter's name or shape differs."""
+    desc = ";".join(f"{k}:{tuple(v.shape)}" for k, v in net.state_dict().items())
+    return f"{type(net).__name__}-{hashlib.sha1(desc.encode()).hexdigest()[:12]}"
+
+
+def params_to_arrays(net: nn.Module) -> dict[str, np.ndarray]:
+    """state_dict -> ``{name: np.ndarray}`` on the CPU (copies)."""
+    return {k: v.detach().to("cpu").numpy().copy() for k, v in net.state_dict().items()}
+
+
+def arrays_to_params(net: nn.Module, arrays: Mapping[str, np.ndarray]) -> None:
+    """Load ``{name: array}`` into ``net``; raises ValueError naming a missing/mismatched one."""
+    sd = net.state_dict()
+    if set(arrays) != set(sd):
+        missing = sorted(set(sd) - set(arrays))
+        extra = sorted(set(arrays) - set(sd))
+        raise ValueError(f"parameter names differ: missing {missing[:3]}, unexpected {extra[:3]}")
+    new = {}
+    for k, t in sd.items():
+        a = arrays[k]
+        if tuple(a.shape) != tuple(t.shape):
+            raise ValueError(f"parameter {k} has shape {tuple(a.shape)}, expected {tuple(t.shape)}")
+        new[k] = torch.from_numpy(np.array(a, dtype=np.float32 if a.dtype.kind == "f" else a.dtype, copy=True))
+    net.load_state_dict(new)
+
+
+def to_tensors(flat: Mapping[str, np.ndarray], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Numpy arrays (possibly read-only views) -> tensors on ``device``."""
+    out = {}
+    for k, v in flat.items():
+        a = v if v.flags.writeable else np.array(v)
+        out[k] = torch.from_numpy(a).to(device, non_blocking=True)
+    return out
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)

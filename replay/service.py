@@ -1,0 +1,226 @@
+"""The replay service (``zenrl replay``): a prioritized replay behind Zenoh.
+
+Keys (see :class:`zenrl.common.protocol.Keys`):
+
+* subscribes ``transitions/*`` (:class:`TransitionBatch`): the Zenoh callback only enqueues the
+  raw bytes into a bounded queue (never stalling the sender past Zenoh's 5 s BLOCK fuse: a chunk
+  that cannot be queued within ``replay.drop_after_s`` is dropped and counted); one ingest
+  thread decodes, validates and inserts;
+* answers ``replay/sample`` (:class:`SampleRequest` -> :class:`SampleReply`); "not ready" (too
+  few items, or the samples-per-insert limit) is answered at once, never by waiting;
+* subscribes ``replay/priorities`` (:class:`PriorityUpdate`); updates for overwritten keys are
+  ignored by the buffer;
+* publishes :class:`Stats` on ``stats/replay/<id>`` every ``replay.stats_interval_s``;
+* declares the liveliness token ``alive/replay/<id>``.
+
+The storage is allocated from the spec of the first valid batch (or restored from disk); every
+later batch must match it. Bad input on any key is rejected, counted by reason and logged
+without flooding; the service keeps serving everyone else.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.config import RunConfig
+from zenrl.common.errors import ProtocolError, SpecMismatch
+from zenrl.common.metrics import RateMeter, RejectCounter
+from zenrl.common.specs import spec_of_batch
+from zenrl.common.transport import Node
+from zenrl.replay.buffer import InMemoryReplay
+
+log = logging.getLogger(__name__)
+
+#: Column the service adds to every item: the weight version the actor acted with (policy lag).
+POLICY_VERSION_FIELD = "meta/policy_version"
+
+
+class ReplayService:
+    """Owns an :class:`InMemoryReplay` and serves it over Zenoh. Thread-safe: the buffer is
+    guarded by one lock shared by the ingest thread and the Zenoh callbacks."""
+
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, service_id: str = "replay") -> None:
+        self.cfg = cfg
+        self.rcfg = cfg.replay
+        self.node = node
+        self.keys = P.Keys(run_id)
+        self.id = service_id
+        self.max_bytes = cfg.transport.max_message_bytes
+        self.buffer: InMemoryReplay | None = None
+        self._lock = threading.Lock()
+        self._queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=self.rcfg.queue_size)
+        self._rng = np.random.default_rng(cfg.seed + 17)
+        self.rejects = RejectCounter(log, "message")
+        self.inserted = RateMeter()
+        self.sampled = RateMeter()
+        self.dropped_queue_full = 0
+        self.not_ready_replies = 0
+        self.sampled_items = 0
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._stats_pub = None
+
+    # -- wiring -----------------------------------------------------------------------------
+    def start(self) -> None:
+        self._stats_pub = self.node.publisher(self.keys.stats("replay", self.id))
+        t = threading.Thread(target=self._ingest_loop, name="replay-ingest", daemon=True)
+        t.start()
+        self._threads.append(t)
+        self.node.subscribe(self.keys.transitions_all, self._on_transitions)
+        self.node.subscribe(self.keys.priorities, self._on_priorities)
+        self.node.queryable(self.keys.sample, self._on_sample)
+        self.node.token(self.keys.alive("replay", self.id))
+        log.info("replay service %s up on %s", self.id, self.keys.prefix)
+
+    def run(self, stop: threading.Event) -> None:
+        """Serve until ``stop`` is set, publishing stats periodically."""
+        self.start()
+        try:
+            while not stop.wait(self.rcfg.stats_interval_s):
+                self.publish_stats()
+        finally:
+            self.shutdown()
+
+    def shutdown(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+
+    # -- ingest -----------------------------------------------------------------------------
+    def _on_transitions(self, key: str, payload: bytes) -> None:
+        try:
+            self._queue.put((key, payload), timeout=self.rcfg.drop_after_s)
+        except queue.Full:
+            self.dropped_queue_full += 1
+            self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+
+    def _ingest_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                key, payload = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            self.ingest(payload, source=key)
+
+    def ingest(self, payload: bytes, source: str = "") -> int:
+        """Decode, validate and insert one :class:`TransitionBatch`; returns items inserted
+        (0 if rejected)."""
+        try:
+            msg = P.TransitionBatch.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), source)
+            return 0
+        data = dict(msg.data)
+        data[POLICY_VERSION_FIELD] = np.full(msg.batch_size, msg.policy_version, np.int64)
+        with self._lock:
+            if self.buffer is None:
+                try:
+                    self.buffer = self._make_buffer(data)
+                except (ValueError, SpecMismatch) as e:
+                    self.rejects.reject("spec", str(e), source)
+                    return 0
+            try:
+                self.buffer.insert(data, msg.priorities)
+            except SpecMismatch as e:
+                self.rejects.reject("spec", str(e), source)
+                return 0
+            except ValueError as e:
+                self.rejects.reject("invalid", str(e), source)
+                return 0
+        n = msg.batch_size
+        self.inserted.add(n)
+        return n
+
+    def _make_buffer(self, data: dict[str, np.ndarray]) -> InMemoryReplay:
+        spec = spec_of_batch(data)
+        buf = InMemoryReplay(spec, capacity=self.rcfg.capacity, max_bytes=self.rcfg.max_bytes,
+                             alpha=self.rcfg.alpha, uniform=self.rcfg.uniform, seed=self.cfg.seed)
+        log.info("replay storage allocated: %d items x %d bytes, fields %s", buf.capacity,
+                 buf.bytes_per_item, {k: (v.shape, v.dtype) for k, v in spec.items()})
+        return buf
+
+    # -- priorities -------------------------------------------------------------------------
+    def _on_priorities(self, key: str, payload: bytes) -> None:
+        try:
+            msg = P.PriorityUpdate.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), key)
+            return
+        with self._lock:
+            if self.buffer is not None:
+                self.buffer.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))
+
+    # -- sampling ---------------------------------------------------------------------------
+    def readiness(self, batch_size: int) -> str:
+        """``""`` if a batch of ``batch_size`` may be sampled now, else the reason why not."""
+        size = 0 if self.buffer is None else self.buffer.size
+        if size < max(self.rcfg.min_size, 1):
+            return f"min_size {self.rcfg.min_size} > size {size}"
+        spi = self.rcfg.samples_per_insert
+        if spi is not None:
+            allowed = spi * self.buffer.inserts_total + self.rcfg.spi_tolerance
+            if self.sampled_items + batch_size > allowed:
+                return f"samples_per_insert {spi} reached ({self.sampled_items} sampled, {self.buffer.inserts_total} inserted)"
+        return ""
+
+    def _on_sample(self, payload: bytes) -> bytes:
+        try:
+            req = P.SampleRequest.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), self.keys.sample)
+            return P.SampleReply(request_id=0, status="not_ready", reason=f"bad request: {e}").encode()
+        return self.sample_reply(req).encode(self.max_bytes)
+
+    def sample_reply(self, req: P.SampleRequest) -> P.SampleReply:
+        with self._lock:
+            why = self.readiness(req.batch_size)
+            size = 0 if self.buffer is None else self.buffer.size
+            if why:
+                self.not_ready_replies += 1
+                return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size)
+            s = self.buffer.sample(req.batch_size, req.beta, self._rng)
+            self.sampled_items += req.batch_size
+        self.sampled.add(1)
+        return P.SampleReply(request_id=req.request_id, status="ok", replay_size=size,
+                             keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=s.data)
+
+    # -- stats ------------------------------------------------------------------------------
+    def stats_values(self) -> dict[str, Any]:
+        with self._lock:
+            b = self.buffer
+            v: dict[str, Any] = {
+                "size": 0 if b is None else b.size,
+                "capacity": self.rcfg.capacity if b is None else b.capacity,
+                "bytes": 0 if b is None else b.nbytes,
+                "inserted_total": 0 if b is None else b.inserts_total,
+                "stale_priority_updates": 0 if b is None else b.stale_updates,
+            }
+        v.update({
+            "inserts_per_s": self.inserted.rate(),
+            "samples_per_s": self.sampled.rate(),
+            "sample_batches_total": self.sampled.total,
+            "not_ready_replies": self.not_ready_replies,
+            "dropped_queue_full": self.dropped_queue_full,
+            "ingest_queue": self._queue.qsize(),
+        })
+        v.update(self.rejects.as_values())
+        return v
+
+    def publish_stats(self) -> None:
+        vals = self.stats_values()
+        if self._stats_pub is not None:
+            self._stats_pub.put(P.Stats(role="replay", id=self.id, time=time.time(), values=vals).encode())
+        log.debug("replay stats %s", vals)
+
+
+def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:
+    """Entry point of ``zenrl replay``: build, run until ``stop``, close the session."""
+    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+        ReplayService(cfg, node, run_id, service_id).run(stop)
