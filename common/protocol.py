@@ -127,6 +127,10 @@ class Keys:
     def alive(self, role: str, proc_id: str) -> str:
         return f"{self.prefix}/alive/{check_name('role', role)}/{check_name('id', proc_id)}"
 
+    def alive_role(self, role: str) -> str:
+        """Liveliness tokens of every process of one role."""
+        return f"{self.prefix}/alive/{check_name('role', role)}/*"
+
     @property
     def alive_all(self) -> str:
         return f"{self.prefix}/alive/**"

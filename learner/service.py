@@ -153,11 +153,11 @@ class ApexLearnerService:
         wait_s = 0.0
         try:
             while not stop.is_set():
-                if self.cfg.max_updates is not None and self.dqn.updates >= self.cfg.max_updates:
-                    stop.wait(0.5)
-                    continue
+                budget_done = self.cfg.max_updates is not None and self.dqn.updates >= self.cfg.max_updates
                 t0 = time.monotonic()
-                s = pf.get(timeout_s=0.5)
+                s = None if budget_done else pf.get(timeout_s=0.5)
+                if budget_done:
+                    stop.wait(0.5)  # the launcher stops the run once it sees the final count
                 wait_s += time.monotonic() - t0
                 if s is not None:
                     b = self.dqn.batch_to_tensors(s.data, s.weights)

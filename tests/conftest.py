@@ -1,0 +1,93 @@
+"""Shared fixtures: a real in-process Zenoh router on a free loopback port, unique run ids, and
+helpers to start zenrl roles as OS processes and wait on conditions with deadlines."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    from zenrl.launcher import free_port as fp
+
+    return fp()
+
+
+def wait_until(cond: Callable[[], object], timeout_s: float, what: str, interval_s: float = 0.1):
+    """Poll ``cond`` until it returns something truthy; fail naming ``what`` at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(interval_s)
+
+
+@pytest.fixture
+def router():
+    """A real Zenoh router (in this process) on a free port; yields its client endpoint."""
+    from zenrl.common.transport import open_router
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    session = open_router([ep])
+    yield ep
+    session.close()
+
+
+@pytest.fixture
+def run_id():
+    return f"t{uuid.uuid4().hex[:10]}"
+
+
+class Procs:
+    """Starts OS processes and makes sure they are gone after the test."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, args: list[str], env: dict | None = None) -> subprocess.Popen:
+        log = open(self.tmp / f"{name}.log", "ab")
+        p = subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+                             env=dict(os.environ, **(env or {})))
+        self.procs.append((name, p))
+        return p
+
+    def zenrl(self, name: str, args: list[str], env: dict | None = None) -> subprocess.Popen:
+        return self.start(name, ["-m", "zenrl.cli", *args], env)
+
+    def log(self, name: str) -> str:
+        p = self.tmp / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def stop_all(self) -> None:
+        for _, p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for name, p in self.procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+                raise AssertionError(f"{name} did not stop on SIGTERM within 20 s (hung)")
+
+
+@pytest.fixture
+def procs(tmp_path):
+    ps = Procs(tmp_path)
+    yield ps
+    ps.stop_all()
