@@ -70,7 +70,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
     net = build_policy_net(cfg, envs)
     metrics = MetricsWriter(Path(cfg.runs_dir) / run_id)
     rounds = 0
-    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+    with Node.from_config(cfg.transport) as node:
         follower = WeightsFollower(node, keys, net, cfg.transport.max_message_bytes)
         pub = node.publisher(keys.eval)
         node.token(keys.alive("evaluator", "evaluator"))

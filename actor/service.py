@@ -210,7 +210,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | Non
     num_slots = cfg.actor.ladder_size or cfg.actor.num_actors
     if slot is None:
         slot = cfg.actor.slot if cfg.actor.slot is not None else 0
-    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+    with Node.from_config(cfg.transport) as node:
         if cfg.algo == "a3c":
             from zenrl.actor.a3c import A3CWorker
 

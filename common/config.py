@@ -29,6 +29,7 @@ class TransportConfig(_Section):
     router: str = Field("tcp/127.0.0.1:7447", description="Zenoh router endpoint every process connects to (env ZENRL_ROUTER).")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Endpoints the embedded router of `zenrl run` listens on.")
     router_config: Optional[str] = Field(None, description="JSON5 config file for the embedded router (overrides `listen`).")
+    client_config: Optional[str] = Field(None, description="JSON5 file with extra Zenoh client settings (TLS root CA, user/password) merged under the ones zenrl sets.")
     connect_timeout_s: float = Field(30.0, ge=0, description="How long a client waits for the router at start-up.")
     query_timeout_s: float = Field(5.0, gt=0, description="Timeout of every remote query (sample requests, weight fetches, slots).")
     max_message_bytes: int = Field(64 * 1024 * 1024, ge=1024, le=1 << 30, description="Cap on one wire message; larger ones are refused on both ends.")

@@ -55,16 +55,39 @@ def _config(doc: dict[str, Any]) -> zenoh.Config:
 
 
 def client_config(endpoint: str, connect_timeout_s: float = 30.0,
-                  extra: dict[str, Any] | None = None) -> zenoh.Config:
+                  extra: dict[str, Any] | None = None, config_file: str | None = None) -> zenoh.Config:
     """Client-mode config: connect to ``endpoint`` only, no scouting, wait up to
-    ``connect_timeout_s`` for the router to come up (0 fails at once)."""
-    doc: dict[str, Any] = {
+    ``connect_timeout_s`` for the router to come up (0 fails at once). ``config_file`` (JSON5,
+    e.g. TLS root CA and user/password for a secured router) is the base these go on top of."""
+    settings: dict[str, Any] = {
         "mode": "client",
-        "connect": {"endpoints": [endpoint], "timeout_ms": int(connect_timeout_s * 1000)},
-        "scouting": {"multicast": {"enabled": False}},
+        "connect/endpoints": [endpoint],
+        "connect/timeout_ms": int(connect_timeout_s * 1000),
+        "scouting/multicast/enabled": False,
     }
-    _merge(doc, extra or {})
-    return _config(doc)
+    if config_file is None:
+        doc: dict[str, Any] = {}
+        for k, v in settings.items():
+            _merge(doc, _nest(k, v))
+        _merge(doc, extra or {})
+        return _config(doc)
+    try:
+        cfg = zenoh.Config.from_file(config_file)
+    except zenoh.ZError as e:
+        raise TransportError(f"client config {config_file!r} is invalid: {e}") from e
+    for k, v in settings.items():
+        cfg.insert_json5(k, json.dumps(v))
+    for k, v in (extra or {}).items():
+        cfg.insert_json5(k, json.dumps(v))
+    return cfg
+
+
+def _nest(path: str, value: Any) -> dict[str, Any]:
+    parts = path.split("/")
+    out: dict[str, Any] = {parts[-1]: value}
+    for p in reversed(parts[:-1]):
+        out = {p: out}
+    return out
 
 
 def router_config(listen: Iterable[str], extra: dict[str, Any] | None = None) -> zenoh.Config:
@@ -97,12 +120,12 @@ def open_router(listen: Iterable[str] = (DEFAULT_ROUTER,), config_file: str | No
 
 
 def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,
-                 extra: dict[str, Any] | None = None) -> zenoh.Session:
+                 extra: dict[str, Any] | None = None, config_file: str | None = None) -> zenoh.Session:
     """Open a client session to the router (see :func:`router_endpoint`)."""
     init_zenoh_logging()
     ep = router_endpoint(endpoint)
     try:
-        return zenoh.open(client_config(ep, connect_timeout_s, extra))
+        return zenoh.open(client_config(ep, connect_timeout_s, extra, config_file))
     except zenoh.ZError as e:
         raise TransportError(f"could not connect to the Zenoh router at {ep}: {e}") from e
 
@@ -122,10 +145,16 @@ class Node:
     """
 
     def __init__(self, endpoint: str | None = None, connect_timeout_s: float = 30.0,
-                 session: zenoh.Session | None = None, extra: dict[str, Any] | None = None) -> None:
-        self.session = session if session is not None else open_session(endpoint, connect_timeout_s, extra)
+                 session: zenoh.Session | None = None, extra: dict[str, Any] | None = None,
+                 config_file: str | None = None) -> None:
+        self.session = session if session is not None else open_session(endpoint, connect_timeout_s, extra, config_file)
         self._entities: list[Any] = []
         self._closed = False
+
+    @classmethod
+    def from_config(cls, tcfg: Any) -> "Node":
+        """A node for a :class:`~zenrl.common.config.TransportConfig`."""
+        return cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config)
 
     # -- context management ---------------------------------------------------------------
     def __enter__(self) -> "Node":

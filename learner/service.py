@@ -25,7 +25,7 @@ from zenrl.common.metrics import MetricsWriter, RateMeter
 from zenrl.common.networks import arch_fingerprint, num_actions, obs_spec, params_to_arrays, resolve_device
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
 from zenrl.common.transport import Node
-from zenrl.learner.checkpoint import checkpoint_dir, load_latest, save_checkpoint
+from zenrl.learner.checkpoint import checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
 from zenrl.learner.dqn import DQNLearner
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ def check_resume_compatible(saved_cfg: dict[str, Any], cfg: RunConfig, saved_arc
 
 
 class ApexLearnerService:
-    def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: bool = False, learner_id: str = "learner") -> None:
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
         self.cfg = cfg
         self.node = node
         self.keys = P.Keys(run_id)
@@ -101,7 +101,7 @@ class ApexLearnerService:
         self.version = 0
         self.transitions_consumed = 0
         self._latest_weights: bytes | None = None
-        if resume:
+        if resume == "require" or (resume == "auto" and list_checkpoints(self.ckpt_dir)):
             self._restore()
         self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
 
@@ -201,9 +201,10 @@ class ApexLearnerService:
             metrics.close()
 
 
-def main(cfg: RunConfig, run_id: str, stop: threading.Event, resume: bool = False) -> None:
-    """Entry point of ``zenrl learner``."""
-    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+def main(cfg: RunConfig, run_id: str, stop: threading.Event, resume: str = "never") -> None:
+    """Entry point of ``zenrl learner``. ``resume``: "never", "require" (newest valid checkpoint,
+    an error if none) or "auto" (resume if a checkpoint exists)."""
+    with Node.from_config(cfg.transport) as node:
         if cfg.algo == "a3c":
             from zenrl.learner.a3c import A3CLearnerService
 

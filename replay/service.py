@@ -222,5 +222,5 @@ class ReplayService:
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:
     """Entry point of ``zenrl replay``: build, run until ``stop``, close the session."""
-    with Node(cfg.transport.router, cfg.transport.connect_timeout_s) as node:
+    with Node.from_config(cfg.transport) as node:
         ReplayService(cfg, node, run_id, service_id).run(stop)

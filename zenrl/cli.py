@@ -176,7 +176,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("learner", help="the learner", epilog=epilog, formatter_class=fmt)
     _add_config_args(s)
-    s.add_argument("--resume", action="store_true", help="continue from the newest valid checkpoint of the run")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_const", const="require", dest="resume", default="never",
+                   help="continue from the newest valid checkpoint of the run (an error if there is none)")
+    g.add_argument("--auto-resume", action="store_const", const="auto", dest="resume",
+                   help="continue from the newest valid checkpoint if there is one, else start fresh (for restart policies)")
     s.set_defaults(func=cmd_learner)
 
     s = sub.add_parser("actor", help="an actor process (many envs)", epilog=epilog, formatter_class=fmt)

@@ -345,7 +345,7 @@ def status(cfg: RunConfig, run_id: str, as_json: bool = False, wait_s: float = 3
             stats[f"{m.role}/{m.id}"] = m.values
 
     k = P.Keys(run_id)
-    with Node(cfg.transport.router, min(cfg.transport.connect_timeout_s, 5.0)) as node:
+    with Node(cfg.transport.router, min(cfg.transport.connect_timeout_s, 5.0), config_file=cfg.transport.client_config) as node:
         node.subscribe(k.stats_all, on_stats)
         alive = [k.parse_alive(x) for x in node.alive_now(k.alive_all)]
         time.sleep(wait_s)  # stats arrive every few seconds; collect one round
