@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import logging
 import os
+import re
+import socket
 import threading
 import time
 from typing import Any
@@ -21,10 +23,11 @@ import torch
 
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.nstep import Emitted, NStepBuilder
+from zenrl.actor.slots import claim_slot
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ProtocolError, RemoteTimeout
-from zenrl.common.exploration import env_epsilons
+from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, num_actions,
                                    obs_spec, to_tensors)
 from zenrl.common.replay_client import ZenohReplayClient
@@ -77,7 +80,8 @@ class WeightsFollower:
 
 
 class ApexActor:
-    def __init__(self, cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int) -> None:
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int | None) -> None:
+        """``num_slots`` None: the slot came from the running system (elastic ladder)."""
         self.cfg = cfg
         acfg = cfg.actor
         self.node = node
@@ -90,7 +94,10 @@ class ApexActor:
         self.n_actions = num_actions(self.envs.single_action_space)
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
         self.net = QNetwork(self.spec, self.n_actions, cfg.network).eval()
-        self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
+        if num_slots is None:
+            self.eps = elastic_env_epsilons(slot, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
+        else:
+            self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
         self.builder = NStepBuilder(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma)
         self.gamma = cfg.learner.gamma
@@ -206,11 +213,14 @@ def _select(em: Emitted, mask: np.ndarray) -> Emitted:
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | None = None, slot: int | None = None) -> None:
     """Entry point of ``zenrl actor``."""
-    actor_id = actor_id or f"actor-{os.getpid()}"
-    num_slots = cfg.actor.ladder_size or cfg.actor.num_actors
+    actor_id = actor_id or re.sub(r"[^A-Za-z0-9_.-]", "-", f"actor-{socket.gethostname()}-{os.getpid()}")[:64]
+    num_slots: int | None = cfg.actor.ladder_size or cfg.actor.num_actors
     if slot is None:
-        slot = cfg.actor.slot if cfg.actor.slot is not None else 0
+        slot = cfg.actor.slot
     with Node.from_config(cfg.transport) as node:
+        if slot is None:  # elastic: the slot comes from the running system
+            slot, _ = claim_slot(node, P.Keys(run_id), actor_id)
+            num_slots = None
         if cfg.algo == "a3c":
             from zenrl.actor.a3c import A3CWorker
 

@@ -24,3 +24,23 @@ def env_epsilons(slot: int, num_slots: int, envs_per_actor: int, base: float = 0
     envs each still cover the whole ladder (with E = 1 this is exactly :func:`apex_epsilon`)."""
     n = num_slots * envs_per_actor
     return np.array([apex_epsilon(slot * envs_per_actor + k, n, base, alpha) for k in range(envs_per_actor)])
+
+
+def van_der_corput(k: int) -> float:
+    """k-th point of the base-2 van der Corput sequence: 0, 1/2, 1/4, 3/4, 1/8, ... Any prefix
+    of it is spread evenly over [0, 1)."""
+    x, denom = 0.0, 1.0
+    while k:
+        denom *= 2.0
+        k, bit = divmod(k, 2)
+        x += bit / denom
+    return x
+
+
+def elastic_env_epsilons(slot: int, envs_per_actor: int, base: float = 0.4, alpha: float = 7.0) -> np.ndarray:
+    """float64[E] for actors whose slots come from the running system (any number may join or
+    leave): rung ``r = slot * E + k`` takes ``base ** (1 + alpha * vdc(r))`` so that the slots
+    0..N-1 in use always cover the Ape-X ladder evenly, whatever N is."""
+    if slot < 0:
+        raise ValueError(f"slot must be >= 0, got {slot}")
+    return np.array([base ** (1.0 + alpha * van_der_corput(slot * envs_per_actor + k)) for k in range(envs_per_actor)])

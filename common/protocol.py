@@ -68,7 +68,7 @@ class Keys:
     ``eval``                         put          :class:`EvalResult`       evaluator -> anyone
     ``stats/<role>/<id>``            put          :class:`Stats`            every process
     ``alive/<role>/<id>``            liveliness   (token)                   every process
-    ``slots``                        queryable    :class:`SlotRequest` -> :class:`SlotReply`
+    ``slots/<k>/<actor>``            liveliness   (token)                   actor owning slot k
     ===============================  ===========  =========================================
     """
 
@@ -135,9 +135,21 @@ class Keys:
     def alive_all(self) -> str:
         return f"{self.prefix}/alive/**"
 
-    @property
-    def slots(self) -> str:
-        return f"{self.prefix}/slots"
+    def slot_token(self, slot: int, actor_id: str) -> str:
+        """Liveliness token an actor holds while it owns exploration slot ``slot``."""
+        if not isinstance(slot, int) or slot < 0:
+            raise ProtocolError("slot", f"{slot!r} must be a non-negative integer", "field")
+        return f"{self.prefix}/slots/{slot}/{check_name('actor_id', actor_id)}"
+
+    def slot_holders(self, slot: int | None = None) -> str:
+        return f"{self.prefix}/slots/{'*' if slot is None else int(slot)}/*"
+
+    def parse_slot(self, key: str) -> tuple[int, str]:
+        """``zenrl/<run>/slots/<k>/<actor>`` -> ``(k, actor)``."""
+        parts = str(key).split("/")
+        if len(parts) != 5 or parts[2] != "slots" or not parts[3].isdigit():
+            raise ProtocolError("key", f"{key!r} is not a slot key of run {self.run_id}")
+        return int(parts[3]), parts[4]
 
     def parse_alive(self, key: str) -> tuple[str, str]:
         """``zenrl/<run>/alive/<role>/<id>`` -> ``(role, id)``."""
@@ -552,24 +564,3 @@ class Stats(Message):
     id: str
     time: float
     values: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class SlotRequest(Message):
-    """Actor -> slot service: ask for an exploration slot; ``previous`` is the slot it had
-    (-1 if none) so a returning actor can get it back."""
-
-    TYPE: ClassVar[str] = "slot_request"
-    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "previous": "int"}
-    actor_id: str
-    previous: int = -1
-
-
-@dataclass(frozen=True)
-class SlotReply(Message):
-    """Slot service -> actor: the slot index granted."""
-
-    TYPE: ClassVar[str] = "slot_reply"
-    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "slot": "uint"}
-    actor_id: str
-    slot: int

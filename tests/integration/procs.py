@@ -37,6 +37,25 @@ def publish(args: argparse.Namespace) -> int:
     return 0
 
 
+def claim(args: argparse.Namespace) -> int:
+    """Claim an elastic slot, print it, hold it until SIGTERM."""
+    import signal
+    import threading
+
+    from zenrl.actor.slots import claim_slot
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with Node(args.router, 10.0) as node:
+        slot, _ = claim_slot(node, P.Keys(args.run), args.actor)
+        sys.stdout.write(f"SLOT {slot}\n")
+        sys.stdout.flush()
+        stop.wait(120)
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -47,8 +66,12 @@ def main() -> int:
     s.add_argument("--chunks", type=int, default=20)
     s.add_argument("--chunk", type=int, default=50)
     s.add_argument("--seed", type=int, default=1)
+    s = sub.add_parser("claim")
+    s.add_argument("--router", required=True)
+    s.add_argument("--run", required=True)
+    s.add_argument("--actor", required=True)
     args = p.parse_args()
-    return {"publish": publish}[args.cmd](args)
+    return {"publish": publish, "claim": claim}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -30,8 +30,6 @@ MESSAGES = [
     P.EpisodeStats("a0", 1, 0.1, 3, 1000, np.array([1.5, 2.0], np.float32), np.array([10, 20], np.int32)),
     P.EvalResult(3, 100, 5000, np.array([500.0], np.float32)),
     P.Stats("replay", "r0", 12.5, {"size": 3, "rate": 1.5, "name": "x"}),
-    P.SlotRequest("a0", -1),
-    P.SlotReply("a0", 4),
 ]
 
 
@@ -152,6 +150,8 @@ def test_keys():
     assert k.transitions("a0") == "zenrl/run1/transitions/a0"
     assert k.alive("actor", "a0") == "zenrl/run1/alive/actor/a0"
     assert k.parse_alive("zenrl/run1/alive/actor/a0") == ("actor", "a0")
+    assert k.slot_token(3, "a0") == "zenrl/run1/slots/3/a0"
+    assert k.parse_slot("zenrl/run1/slots/3/a0") == (3, "a0")
     for bad in ["", "a/b", "a*", "x" * 65, "$x"]:
         with pytest.raises(ProtocolError):
             P.Keys(bad)

@@ -1,0 +1,53 @@
+"""Elastic exploration slots: an actor claims the lowest free slot by declaring the liveliness
+token ``slots/<k>/<actor-id>``. Tokens vanish when an actor dies (at once on a crash, after the
+lease when frozen), so slots are reused; no central service holds the assignment.
+
+Claiming: read the tokens alive now, pick the lowest free slot (the previous one if it is still
+free), declare the token, wait ``settle_s`` for concurrent claims to propagate, then keep the
+slot only if this actor's id is the smallest among its holders; otherwise withdraw and retry.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import time
+from typing import Any
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import TransportError
+from zenrl.common.transport import Node
+
+log = logging.getLogger(__name__)
+
+
+def _holders(node: Node, keys: P.Keys, slot: int | None = None) -> list[tuple[int, str]]:
+    out = []
+    for k in node.alive_now(keys.slot_holders(slot), timeout_s=2.0):
+        try:
+            out.append(keys.parse_slot(k))
+        except P.ProtocolError:
+            continue
+    return out
+
+
+def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, settle_s: float = 0.3,
+               attempts: int = 20, seed: int | None = None) -> tuple[int, Any]:
+    """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes)."""
+    rng = random.Random(seed if seed is not None else actor_id)
+    for _ in range(attempts):
+        used = {s for s, a in _holders(node, keys) if a != actor_id}
+        if previous is not None and previous not in used:
+            cand = previous
+        else:
+            cand = next(i for i in range(len(used) + 1) if i not in used)
+        token = node.session.liveliness().declare_token(keys.slot_token(cand, actor_id))
+        time.sleep(settle_s)  # let concurrent claims of the same slot become visible
+        holders = sorted(a for _, a in _holders(node, keys, cand))
+        if not holders or holders[0] == actor_id:
+            node._entities.append(token)
+            log.info("actor %s holds exploration slot %d", actor_id, cand)
+            return cand, token
+        token.undeclare()
+        time.sleep(rng.uniform(0.05, 0.3))
+    raise TransportError(f"actor {actor_id} could not claim an exploration slot in {attempts} attempts")
