@@ -70,3 +70,24 @@ def load_latest(directory: str | os.PathLike[str]) -> tuple[dict[str, Any], Path
         except CheckpointError as e:
             log.error("%s; trying the previous one", e)
     raise CheckpointError(f"no readable checkpoint in {str(directory)!r} ({len(files)} corrupt)")
+
+
+VERSION_MARK = "weights_version"
+
+
+def write_version_mark(run_dir: str | os.PathLike[str], version: int) -> None:
+    """Record the highest weights version published (before publishing it), so a learner
+    resumed from an older checkpoint continues above every version actors have seen."""
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    tmp = d / f".{VERSION_MARK}.tmp-{os.getpid()}"
+    tmp.write_text(str(int(version)))
+    os.replace(tmp, d / VERSION_MARK)
+
+
+def read_version_mark(run_dir: str | os.PathLike[str]) -> int:
+    p = Path(run_dir) / VERSION_MARK
+    try:
+        return int(p.read_text().strip())
+    except (FileNotFoundError, ValueError):
+        return 0

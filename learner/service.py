@@ -25,7 +25,8 @@ from zenrl.common.metrics import MetricsWriter, RateMeter
 from zenrl.common.networks import arch_fingerprint, num_actions, obs_spec, params_to_arrays, resolve_device
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
 from zenrl.common.transport import Node
-from zenrl.learner.checkpoint import checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
+from zenrl.learner.checkpoint import (checkpoint_dir, list_checkpoints, load_latest, read_version_mark,
+                                     save_checkpoint, write_version_mark)
 from zenrl.learner.dqn import DQNLearner
 
 log = logging.getLogger(__name__)
@@ -116,7 +117,8 @@ class ApexLearnerService:
         state, path = load_latest(self.ckpt_dir)
         check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
         self.dqn.load_state_dict(state["learner"])
-        self.version = int(state["version"])
+        # versions published after that checkpoint are above it: continue above the high-water mark
+        self.version = max(int(state["version"]), read_version_mark(self.run_dir))
         self.transitions_consumed = int(state["transitions_consumed"])
         torch.set_rng_state(state["torch_rng"])
         log.info("resumed from %s: %d updates, weights version %d", path, self.dqn.updates, self.version)
@@ -129,6 +131,7 @@ class ApexLearnerService:
     # -- weights -----------------------------------------------------------------------------
     def _encode_weights(self) -> bytes:
         self.version += 1
+        write_version_mark(self.run_dir, self.version)
         return P.Weights(version=self.version, learner_id=self.id, arch=self.arch, updates=self.dqn.updates,
                          params=params_to_arrays(self.dqn.online)).encode(self.cfg.transport.max_message_bytes)
 
