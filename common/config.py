@@ -63,6 +63,11 @@ class ReplayConfig(_Section):
     spi_tolerance: float = Field(10_000.0, gt=0, description="How many sampled transitions the samples-per-insert limit may run ahead.")
     stats_interval_s: float = Field(2.0, gt=0, description="How often the replay publishes its stats.")
     queue_size: int = Field(256, ge=1, description="Ingest queue length (chunks) between Zenoh and the replay.")
+    durable: bool = Field(False, description="Keep an append-only log of inserted chunks and priority snapshots so the contents survive a crash.")
+    log_dir: Optional[str] = Field(None, description="Directory of the durable log (default: <runs_dir>/<run_id>/replay).")
+    flush_interval_s: float = Field(1.0, gt=0, description="fsync the durable log at most this often (the loss window after a crash).")
+    snapshot_interval_s: float = Field(10.0, gt=0, description="Write a priority snapshot this often.")
+    segment_items: Optional[int] = Field(None, ge=1, description="Items per log segment (default capacity / 8); whole segments are deleted once overwritten.")
     drop_after_s: float = Field(2.0, gt=0, lt=5, description="A chunk waiting this long for a full ingest queue is dropped and counted (stays below Zenoh's 5 s BLOCK fuse).")
 
 

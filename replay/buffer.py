@@ -306,6 +306,13 @@ class InMemoryReplay:
         self._size = min(cap, self._size + n)
         return keys
 
+    def start_at(self, first_key: int) -> None:
+        """Make the next insert get key ``first_key`` (an empty buffer only): a replay restored
+        from its log keeps the keys its items had, so in-flight priority updates still match."""
+        if self._size or self._inserts_total:
+            raise ValueError("start_at() needs an empty buffer that has never been inserted into")
+        self._inserts_total = _check_int("first_key", first_key, 0)
+
     def _leaf_value(self, p: float) -> float:
         return float((p + self._eps) ** self._alpha)
 
@@ -388,7 +395,8 @@ class InMemoryReplay:
         g = self._rng if rng is None else rng
         n = self._size
         if self._tree is None:
-            slots = g.integers(0, n, size=b, dtype=np.int64)
+            first = (self._inserts_total - n) % self._capacity  # oldest stored item's slot
+            slots = (first + g.integers(0, n, size=b, dtype=np.int64)) % self._capacity
             probs = np.full(b, 1.0 / n, dtype=np.float64)
             weights = np.ones(b, dtype=np.float32)
         else:
@@ -448,6 +456,16 @@ class InMemoryReplay:
         else:
             out[present] = self._tree.get(k[present] % self._capacity)
         return out
+
+    def raw_priorities(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(keys int64[N], raw priorities float64[N])`` of every stored item (inverting
+        ``(p + eps) ** alpha``; all ones in uniform mode), for priority snapshots."""
+        keys = self._keys[self._keys >= 0]
+        if self._tree is None:
+            return keys, np.ones(keys.shape[0])
+        leaves = self._tree.get(keys % self._capacity)
+        raw = leaves if self._alpha == 0 else np.power(leaves, 1.0 / self._alpha) - self._eps
+        return keys, np.maximum(raw, 0.0)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:

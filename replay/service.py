@@ -24,6 +24,7 @@ import logging
 import queue
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,7 @@ from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.specs import spec_of_batch
 from zenrl.common.transport import Node
 from zenrl.replay.buffer import InMemoryReplay
+from zenrl.replay.durable import ReplayLog
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +68,13 @@ class ReplayService:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._stats_pub = None
+        self.journal: ReplayLog | None = None
+        self.restored_items = 0
+        self._last_snapshot = time.monotonic()
+        if self.rcfg.durable:
+            log_dir = self.rcfg.log_dir or str(Path(cfg.runs_dir) / run_id / "replay")
+            self.journal = ReplayLog(log_dir, self.rcfg.segment_items or max(1, self.rcfg.capacity // 8), self.rcfg.flush_interval_s)
+            self.restore()
 
     # -- wiring -----------------------------------------------------------------------------
     def start(self) -> None:
@@ -92,6 +101,48 @@ class ReplayService:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5)
+        if self.journal is not None:
+            with self._lock:
+                self.snapshot()
+                self.journal.close()
+            log.info("replay log flushed: %d items stored", 0 if self.buffer is None else self.buffer.size)
+
+    # -- durability ---------------------------------------------------------------------------
+    def restore(self) -> None:
+        """Rebuild the buffer from the log (same keys as before), then apply the newest
+        priority snapshot (keys overwritten since are ignored)."""
+        records = 0
+        for rec in self.journal.read():
+            try:
+                msg = P.TransitionBatch.decode(rec.payload, self.max_bytes)
+            except ProtocolError as e:  # cannot happen for records we wrote; never fatal
+                log.warning("skipping an undecodable log record: %s", e)
+                continue
+            data = self._with_meta(msg)
+            if self.buffer is None:
+                self.buffer = self._make_buffer(data)
+                self.buffer.start_at(rec.first_key)
+            elif rec.first_key != self.buffer.inserts_total:
+                log.warning("replay log gap: expected key %d, record starts at %d", self.buffer.inserts_total, rec.first_key)
+            self.buffer.insert(data, msg.priorities)
+            records += 1
+        if self.buffer is None:
+            return
+        snap = self.journal.load_priorities()
+        if snap is not None:
+            self.buffer.update_priorities(*snap)
+        self.restored_items = self.buffer.size
+        log.info("replay restored %d items (keys up to %d) from %d log records", self.buffer.size,
+                 self.buffer.inserts_total - 1, records)
+
+    def snapshot(self) -> None:
+        """Priority snapshot + flush (caller holds the lock)."""
+        if self.journal is None or self.buffer is None:
+            return
+        keys, prios = self.buffer.raw_priorities()
+        self.journal.flush()
+        self.journal.snapshot_priorities(keys, prios, self.buffer.inserts_total)
+        self._last_snapshot = time.monotonic()
 
     # -- ingest -----------------------------------------------------------------------------
     def _on_transitions(self, key: str, payload: bytes) -> None:
@@ -106,6 +157,9 @@ class ReplayService:
             try:
                 key, payload = self._queue.get(timeout=0.2)
             except queue.Empty:
+                if self.journal is not None:
+                    with self._lock:
+                        self.journal.maybe_flush()
                 continue
             self.ingest(payload, source=key)
 
@@ -117,8 +171,7 @@ class ReplayService:
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), source)
             return 0
-        data = dict(msg.data)
-        data[POLICY_VERSION_FIELD] = np.full(msg.batch_size, msg.policy_version, np.int64)
+        data = self._with_meta(msg)
         with self._lock:
             if self.buffer is None:
                 try:
@@ -127,16 +180,28 @@ class ReplayService:
                     self.rejects.reject("spec", str(e), source)
                     return 0
             try:
-                self.buffer.insert(data, msg.priorities)
+                keys = self.buffer.insert(data, msg.priorities)
             except SpecMismatch as e:
                 self.rejects.reject("spec", str(e), source)
                 return 0
             except ValueError as e:
                 self.rejects.reject("invalid", str(e), source)
                 return 0
+            if self.journal is not None:
+                self.journal.append(int(keys[0]), len(keys), payload)
+                if self.journal.maybe_flush():
+                    self.journal.prune(self.buffer.inserts_total - self.buffer.capacity)
+                if time.monotonic() - self._last_snapshot >= self.rcfg.snapshot_interval_s:
+                    self.snapshot()
         n = msg.batch_size
         self.inserted.add(n)
         return n
+
+    @staticmethod
+    def _with_meta(msg: P.TransitionBatch) -> dict[str, np.ndarray]:
+        data = dict(msg.data)
+        data[POLICY_VERSION_FIELD] = np.full(msg.batch_size, msg.policy_version, np.int64)
+        return data
 
     def _make_buffer(self, data: dict[str, np.ndarray]) -> InMemoryReplay:
         spec = spec_of_batch(data)
@@ -209,7 +274,12 @@ class ReplayService:
             "not_ready_replies": self.not_ready_replies,
             "dropped_queue_full": self.dropped_queue_full,
             "ingest_queue": self._queue.qsize(),
+            "restored_items": self.restored_items,
         })
+        if self.journal is not None:
+            v.update({"log_bytes_written": self.journal.bytes_written, "log_disk_bytes": self.journal.disk_bytes(),
+                      "log_torn_records": self.journal.torn_records,
+                      "durable_through": self.journal.durable_through})
         v.update(self.rejects.as_values())
         return v
 
