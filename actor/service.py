@@ -101,7 +101,8 @@ class ApexActor:
         self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
         self.builder = NStepBuilder(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma)
         self.gamma = cfg.learner.gamma
-        self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
+        self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s,
+                                        cfg.transport.max_message_bytes, acfg.backlog_chunks)
         self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
         self.env_steps = 0
         self._chunk: list[tuple[dict[str, np.ndarray], np.ndarray]] = []
@@ -191,6 +192,7 @@ class ApexActor:
                     last_report = now
         finally:
             self._flush()
+            self.replay.flush_backlog()
             self._report(eps_pub, stats_pub, max(time.monotonic() - last_report, 1e-6))
             self.envs.close()
 
@@ -204,7 +206,8 @@ class ApexActor:
         stats_pub.put(P.Stats(role="actor", id=self.id, time=time.time(), values={
             "env_steps": self.env_steps, "slot": self.slot, "policy_version": self.weights.version,
             "sent_transitions": self.sent_transitions, "sent_chunks": self.replay.sent_chunks,
-            "failed_chunks": self.replay.failed_chunks, "weights_rejected": self.weights.rejected}).encode())
+            "failed_chunks": self.replay.failed_chunks, "undelivered_chunks": self.replay.undelivered_chunks,
+            "backlog_chunks": self.replay.backlog, "weights_rejected": self.weights.rejected}).encode())
 
 
 def _select(em: Emitted, mask: np.ndarray) -> Emitted:

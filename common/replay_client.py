@@ -8,6 +8,7 @@ when data is available.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import logging
 import queue
@@ -41,7 +42,7 @@ class ZenohReplayClient:
     queries ``replay/sample``, ``update_priorities`` publishes a :class:`PriorityUpdate`."""
 
     def __init__(self, node: Node, keys: P.Keys, actor_id: str = "client", timeout_s: float = 5.0,
-                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, backlog_chunks: int = 512) -> None:
         self.node = node
         self.keys = keys
         self.actor_id = P.check_name("actor_id", actor_id)
@@ -53,6 +54,11 @@ class ZenohReplayClient:
         self._req = itertools.count(1)
         self.sent_chunks = 0
         self.failed_chunks = 0
+        #: chunks held while no replay subscribes (replay or router restarting), resent later
+        self._backlog: collections.deque[bytes] = collections.deque()
+        self.backlog_limit = backlog_chunks
+        #: chunks that could not be delivered: backlog overflow or a failed put
+        self.undelivered_chunks = 0
 
     def insert(self, batch: Mapping[str, np.ndarray], priorities: np.ndarray | None = None,
                policy_version: int = -1) -> None:
@@ -62,12 +68,35 @@ class ZenohReplayClient:
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
                                 data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32))
         payload = msg.encode(self.max_bytes)
+        if not self._tx.matching_status.matching:
+            # nobody would receive it (replay down, or the router restarting): hold it
+            self._backlog.append(payload)
+            while len(self._backlog) > self.backlog_limit:
+                self._backlog.popleft()
+                self.undelivered_chunks += 1
+            return
+        while self._backlog:
+            self._put(self._backlog.popleft())
+        self._put(payload)
+
+    def _put(self, payload: bytes) -> None:
         try:
             self._tx.put(payload)
             self.sent_chunks += 1
         except Exception as e:  # zenoh.ZError when the session is gone; counted, not silent
             self.failed_chunks += 1
-            log.warning("could not publish a chunk of %d transitions: %s", msg.batch_size, e)
+            self.undelivered_chunks += 1
+            log.warning("could not publish a chunk: %s", e)
+
+    def flush_backlog(self) -> None:
+        """Send held chunks if a replay is reachable now (called before an actor stops)."""
+        if self._tx is not None and self._backlog and self._tx.matching_status.matching:
+            while self._backlog:
+                self._put(self._backlog.popleft())
+
+    @property
+    def backlog(self) -> int:
+        return len(self._backlog)
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         if self._prio is None:

@@ -23,6 +23,32 @@ def free_port() -> int:
     return fp()
 
 
+def zenrl_pids(run_id: str, role: str | None = None, ident: str | None = None) -> list[int]:
+    """Pids of live ``python -m zenrl.cli <role> ... --run-id <run_id>`` processes (from /proc,
+    whose command lines are never truncated)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            args = (d / "cmdline").read_bytes().decode(errors="replace").split("\0")
+            if (d / "stat").read_text().split()[2] == "Z":
+                continue
+        except OSError:
+            continue
+        if "zenrl.cli" not in args or "--run-id" not in args:
+            continue
+        i = args.index("zenrl.cli")
+        if args[args.index("--run-id") + 1] != run_id or i + 1 >= len(args) or args[i + 1] == "run":
+            continue
+        if role is not None and args[i + 1] != role:
+            continue
+        if ident is not None and not ("--id" in args and args[args.index("--id") + 1] == ident):
+            continue
+        pids.append(int(d.name))
+    return sorted(pids)
+
+
 def wait_until(cond: Callable[[], object], timeout_s: float, what: str, interval_s: float = 0.1):
     """Poll ``cond`` until it returns something truthy; fail naming ``what`` at the deadline."""
     deadline = time.monotonic() + timeout_s

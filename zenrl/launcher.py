@@ -186,12 +186,7 @@ class Launcher:
                 return
             c.restarts += 1
             log.warning("%s exited with code %s; restarting (%d/%d), log %s", c.name, rc, c.restarts, self.max_restarts, c.log_path)
-            self._spawn(c, ["--resume"] if c.role == "learner" and "--resume" not in c.args and self._has_checkpoint() else None)
-
-    def _has_checkpoint(self) -> bool:
-        from zenrl.learner.checkpoint import checkpoint_dir, list_checkpoints
-
-        return bool(list_checkpoints(checkpoint_dir(self.cfg.runs_dir, self.run_id)))
+            self._spawn(c, ["--auto-resume"] if c.role == "learner" and "--resume" not in c.args else None)
 
     def _terminate(self) -> None:
         order = [[c for c in self.children if c.role in ("actor", "evaluator")],
