@@ -9,6 +9,7 @@ Every value is validated on construction; an error names the option and the bad 
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import Any, Literal, Mapping, Optional
@@ -99,7 +100,6 @@ class LearnerConfig(_Section):
     beta_anneal_updates: int = Field(20_000, ge=1, description="Updates over which beta anneals linearly to 1.")
     publish_every_updates: int = Field(25, ge=1, description="Broadcast weights every this many updates.")
     requests_in_flight: int = Field(4, ge=1, description="Sample requests kept in flight by the prefetcher.")
-    max_updates_per_insert: Optional[float] = Field(None, gt=0, description="If set, the learner waits when updates*batch_size exceeds this times the inserted transitions.")
     device: str = Field("auto", description="torch device: auto (cuda if available), cpu, cuda, cuda:N.")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads in the learner.")
     checkpoint_interval_s: float = Field(60.0, gt=0, description="Save a checkpoint this often (and on stop).")
@@ -215,11 +215,28 @@ def load_config(path: str | os.PathLike[str] | None = None, overrides: list[str]
 
 
 def config_from_dict(d: Mapping[str, Any]) -> RunConfig:
-    """Validate a resolved config (e.g. the one saved in a run directory or checkpoint)."""
-    try:
-        return RunConfig.model_validate(dict(d))
-    except ValidationError as e:
-        raise ConfigError(_format_errors(e, "saved config")) from None
+    """Validate a resolved config saved by zenrl (a run directory or checkpoint). Options that
+    this version no longer has are dropped with a warning, so older runs stay readable."""
+    tree = _plain(d)
+    for _ in range(64):
+        try:
+            return RunConfig.model_validate(tree)
+        except ValidationError as e:
+            gone = [err["loc"] for err in e.errors() if err["type"] == "extra_forbidden"]
+            if not gone or len(gone) != len(e.errors()):
+                raise ConfigError(_format_errors(e, "saved config")) from None
+            for loc in gone:
+                node = tree
+                for part in loc[:-1]:
+                    node = node[part]
+                node.pop(loc[-1], None)
+                logging.getLogger(__name__).warning("saved config option %s is unknown to this version; ignored",
+                                                    ".".join(map(str, loc)))
+    raise ConfigError("saved config could not be read")
+
+
+def _plain(d: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: _plain(v) if isinstance(v, Mapping) else v for k, v in d.items()}
 
 
 def describe_options(model: type[BaseModel] = RunConfig, prefix: str = "") -> list[tuple[str, str, str]]:

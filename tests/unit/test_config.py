@@ -46,3 +46,16 @@ def test_every_option_is_documented():
     assert len(rows) > 40
     missing = [name for name, _, desc in rows if not desc]
     assert not missing, missing
+
+
+def test_saved_config_with_removed_option_stays_readable(caplog):
+    from zenrl.common.config import config_from_dict
+
+    saved = load_config(None, ["learner.lr=0.01"], environ={}).model_dump(mode="json")
+    saved["learner"]["an_option_from_an_older_version"] = 3
+    cfg = config_from_dict(saved)
+    assert cfg.learner.lr == 0.01
+    assert "an_option_from_an_older_version" in caplog.text
+    saved["learner"]["lr"] = -1
+    with pytest.raises(ConfigError, match="learner.lr"):
+        config_from_dict(saved)
