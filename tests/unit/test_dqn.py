@@ -1,0 +1,104 @@
+"""Ape-X learner math on hand-made batches, networks, and weight versioning."""
+
+import numpy as np
+import pytest
+import torch
+
+from zenrl.actor.service import WeightsFollower
+from zenrl.common import protocol as P
+from zenrl.common.config import NetworkConfig
+from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, obs_spec, params_to_arrays)
+from zenrl.common.specs import ArraySpec
+from zenrl.learner.dqn import double_dqn_target, dqn_loss
+
+
+def test_double_dqn_target_by_hand():
+    q_next_online = torch.tensor([[1.0, 5.0], [3.0, 2.0], [0.0, 1.0]])
+    q_next_target = torch.tensor([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]])
+    reward = torch.tensor([1.0, 2.0, 3.0])
+    n = torch.tensor([3, 1, 2], dtype=torch.uint8)
+    terminated = torch.tensor([False, False, True])
+    y = double_dqn_target(q_next_online, q_next_target, reward, n, terminated, gamma=0.5)
+    # online argmax picks action 1, 0, 1; target evaluates it; terminated stops bootstrapping
+    torch.testing.assert_close(y, torch.tensor([1.0 + 0.125 * 20.0, 2.0 + 0.5 * 30.0, 3.0]))
+
+
+def test_weighted_huber_loss_by_hand():
+    q = torch.tensor([[0.0, 1.0], [2.0, 0.0]], requires_grad=True)
+    action = torch.tensor([1, 0])
+    target = torch.tensor([1.5, 5.0])       # td 0.5 (quadratic), 3.0 (linear)
+    weights = torch.tensor([1.0, 0.5])
+    loss, td, q_sa = dqn_loss(q, action, target, weights, huber_delta=1.0)
+    expected = (1.0 * 0.5 * 0.5 ** 2 + 0.5 * (3.0 - 0.5)) / 2
+    assert loss.item() == pytest.approx(expected)
+    torch.testing.assert_close(td, torch.tensor([0.5, 3.0]))
+    loss.backward()
+    torch.testing.assert_close(q.grad, torch.tensor([[0.0, -0.25], [-0.25, 0.0]]))
+
+
+def test_networks_on_dict_and_image_observations():
+    import gymnasium as gym
+
+    space = gym.spaces.Dict({"lidar": gym.spaces.Box(0, 4, (360,), np.float32),
+                             "image": gym.spaces.Box(0, 255, (64, 64, 3), np.uint8)})
+    spec = obs_spec(space)
+    assert spec == {"obs/lidar": ArraySpec((360,), "float32"), "obs/image": ArraySpec((64, 64, 3), "uint8")}
+    net = QNetwork(spec, 5, NetworkConfig(hidden=[32]))
+    obs = {"obs/lidar": torch.rand(7, 360), "obs/image": torch.randint(0, 255, (7, 64, 64, 3), dtype=torch.uint8)}
+    q = net(obs)
+    assert q.shape == (7, 5)
+    assert any(isinstance(m, torch.nn.Conv2d) for m in net.modules())
+    # dueling: the advantages are centred, so V is the mean of Q over actions
+    h = net.trunk(net.encoder(obs))
+    torch.testing.assert_close(q.mean(1), net.value(h).squeeze(1))
+
+
+class _FakeNode:
+    def __init__(self):
+        self.latest = None
+
+    def subscribe_latest(self, key):
+        outer = self
+
+        class LV:
+            def take(self):
+                v, outer.latest = outer.latest, None
+                return v
+
+        return LV()
+
+
+def _weights(net, version, arch=None):
+    return P.Weights(version=version, learner_id="l", arch=arch or arch_fingerprint(net), updates=version * 10,
+                     params=params_to_arrays(net)).encode()
+
+
+def test_weights_follower_takes_only_newer_matching_weights():
+    spec = {"obs": ArraySpec((4,), "float32")}
+    torch.manual_seed(0)
+    learner_net = QNetwork(spec, 2, NetworkConfig(hidden=[16]))
+    actor_net = QNetwork(spec, 2, NetworkConfig(hidden=[16]))
+    node = _FakeNode()
+    f = WeightsFollower(node, P.Keys("r"), actor_net, P.DEFAULT_MAX_MESSAGE_BYTES)
+    node.latest = _weights(learner_net, 3)
+    assert f.maybe_load() and f.version == 3 and f.updates == 30
+    for a, b in zip(actor_net.state_dict().values(), learner_net.state_dict().values()):
+        assert torch.equal(a, b)
+    node.latest = _weights(learner_net, 3)
+    assert not f.maybe_load()                       # same version: ignored
+    node.latest = _weights(learner_net, 2)
+    assert not f.maybe_load() and f.version == 3    # older: ignored
+    other = QNetwork(spec, 2, NetworkConfig(hidden=[8]))
+    node.latest = _weights(other, 9)
+    assert not f.maybe_load() and f.rejected == 1   # another architecture: refused
+    assert not f.maybe_load()                       # nothing new
+
+
+def test_arrays_to_params_names_the_bad_parameter():
+    spec = {"obs": ArraySpec((4,), "float32")}
+    net = QNetwork(spec, 2, NetworkConfig(hidden=[16]))
+    arrays = params_to_arrays(net)
+    name = next(iter(arrays))
+    arrays[name] = np.zeros((3, 3), np.float32)
+    with pytest.raises(ValueError, match=name):
+        arrays_to_params(net, arrays)
