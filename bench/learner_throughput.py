@@ -1,0 +1,368 @@
+"""Learner throughput (issue 7): updates/s of the Ape-X learner fed over Zenoh vs in memory.
+
+Measures, in one run and one process (CartPole-v1 network from ``configs/cartpole_apex.yaml``,
+``learner.batch_size=512``, one torch thread as configured):
+
+  * ``service``  - updates/s of :class:`ApexLearnerService` doing everything it does in a run:
+                   ``SamplePrefetcher`` (4 sample queries in flight) against a ``zenrl replay``
+                   process pre-filled with CartPole transitions, ``batch_to_tensors`` +
+                   ``DQNLearner.update``, priorities sent back from the background sender,
+                   weights broadcast every ``publish_every_updates``;
+  * ``baseline`` - updates/s of the same :class:`DQNLearner` on synthetic batches of the same
+                   layout already in memory (``batch_to_tensors`` + ``update``), nothing sent.
+
+Rounds alternate (baseline, service, baseline, service, ...); medians are compared:
+``learner_efficiency`` = median service rate / median baseline rate (target >= 0.9). Rates are
+read from the update counter between two instants after a warm-up (start-up, the first weights
+broadcast and the final checkpoint are outside the window). ``learner_efficiency_cpu`` compares
+updates per CPU-second of the training thread, steadier on a loaded machine.
+
+When the efficiency (wall or CPU) is below target (or with ``--profile``), one more service run is profiled
+with cProfile (``profile``), plus the learner's own ``wait_fraction`` (time blocked on the
+prefetcher).
+
+Progress goes to stderr; the last stdout line is one JSON object.
+
+    python bench/learner_throughput.py            # full run (~1.5-2 min)
+    python bench/learner_throughput.py --quick    # one short round (~40 s)
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import platform
+import pstats
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = ROOT / "configs" / "cartpole_apex.yaml"
+BATCH = 512
+TARGET = 0.9
+PREFILL = 50_000
+CHUNK = 64
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+class Procs:
+    """OS processes started by the benchmark; all stopped in :meth:`stop_all`."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, name: str, argv: list[str]) -> subprocess.Popen:
+        with open(self.tmp / f"{name}.log", "ab") as logf:
+            env = dict(os.environ, ZENRL_PARENT_PID=str(os.getpid()))
+            p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stdout=logf, stderr=subprocess.STDOUT)
+        self.procs.append(p)
+        return p
+
+    def stop_all(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in self.procs:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def wait_until(cond, timeout_s: float, what: str, interval_s: float = 0.05):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(interval_s)
+
+
+class StatsWatch:
+    """Latest stats of one role/id."""
+
+    def __init__(self, node: Any, key: str) -> None:
+        from zenrl.common import protocol as P
+
+        self._P = P
+        self.latest: dict[str, Any] = {}
+        self.history: list[dict[str, Any]] = []
+        node.subscribe(key, self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        self.latest = dict(self._P.Stats.decode(payload).values)
+        self.history.append(self.latest)
+
+
+def cartpole_batch(rng: np.random.Generator, b: int) -> dict[str, np.ndarray]:
+    return {
+        "obs": rng.standard_normal((b, 4)).astype(np.float32),
+        "action": rng.integers(0, 2, b).astype(np.int64),
+        "reward": (rng.random(b) * 3).astype(np.float32),
+        "next_obs": rng.standard_normal((b, 4)).astype(np.float32),
+        "terminated": rng.random(b) < 0.02,
+        "truncated": np.zeros(b, bool),
+        "n": np.full(b, 3, np.uint8),
+    }
+
+
+def prefill(node: Any, keys: Any, rstats: StatsWatch, n_items: int) -> None:
+    from zenrl.common.replay_client import ZenohReplayClient
+
+    client = ZenohReplayClient(node, keys, "bench-prefill")
+    rng = np.random.default_rng(0)
+    sent = 0
+    while sent < n_items:
+        client.insert(cartpole_batch(rng, CHUNK), (rng.random(CHUNK) + 0.01).astype(np.float32), policy_version=0)
+        sent += CHUNK
+    client.flush_backlog()
+    wait_until(lambda: rstats.latest.get("inserted_total", 0) >= sent, 120, f"replay to hold {sent} items")
+
+
+def baseline_rate(cfg: Any, spec: Any, n_actions: int, warmup_s: float, duration_s: float) -> dict[str, Any]:
+    """Updates/s of a DQNLearner on synthetic batches in memory (batch_to_tensors + update)."""
+    import torch
+
+    from zenrl.common.networks import resolve_device
+    from zenrl.learner.dqn import DQNLearner
+
+    torch.set_num_threads(cfg.learner.torch_threads)
+    torch.manual_seed(cfg.seed)
+    dqn = DQNLearner(spec, n_actions, cfg.network, cfg.learner, resolve_device(cfg.learner.device))
+    rng = np.random.default_rng(1)
+    batches = []
+    for _ in range(8):
+        d = cartpole_batch(rng, BATCH)
+        d["meta/policy_version"] = np.zeros(BATCH, np.int64)
+        batches.append((d, (rng.random(BATCH) * 0.9 + 0.1).astype(np.float32)))
+    i = 0
+    t_end = time.perf_counter() + warmup_s
+    while time.perf_counter() < t_end:
+        dqn.update(dqn.batch_to_tensors(*batches[i % 8]))
+        i += 1
+    n = 0
+    t0, c0 = time.perf_counter(), time.thread_time()
+    t_end = t0 + duration_s
+    while time.perf_counter() < t_end:
+        d, w = batches[i % 8]
+        dqn.update(dqn.batch_to_tensors(d, w))
+        i += 1
+        n += 1
+    el, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return {"updates_per_s": n / el, "updates_per_cpu_s": n / cpu, "updates": n, "elapsed_s": el, "cpu_s": cpu}
+
+
+def make_service(cfg: Any, node: Any, run: str, name: str) -> Any:
+    from zenrl.learner.service import ApexLearnerService
+
+    return ApexLearnerService(cfg, node, run, resume="never", learner_id=name)
+
+
+def service_rate(cfg: Any, node: Any, run: str, name: str, warmup_s: float, duration_s: float,
+                 lstats: StatsWatch) -> dict[str, Any]:
+    """Updates/s of ApexLearnerService.run in this (the main) thread, read from its update counter
+    by a helper thread, which also stops it."""
+    svc = make_service(cfg, node, run, name)
+    stop = threading.Event()
+    marks: list[tuple[int, float, float]] = []
+    clock = time.pthread_getcpuclockid(threading.get_ident())
+    n_hist = len(lstats.history)
+
+    def monitor() -> None:
+        deadline = time.monotonic() + 60
+        while svc.dqn.updates == 0 and not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if not stop.wait(warmup_s):
+            marks.append((svc.dqn.updates, time.perf_counter(), time.clock_gettime(clock)))
+            if not stop.wait(duration_s):
+                marks.append((svc.dqn.updates, time.perf_counter(), time.clock_gettime(clock)))
+        stop.set()
+
+    mon = threading.Thread(target=monitor, name="monitor", daemon=True)
+    mon.start()
+    try:
+        svc.run(stop)
+    finally:
+        stop.set()
+        mon.join(timeout=10)
+    if len(marks) < 2:
+        raise RuntimeError("the learner made no update (replay not serving?) or stopped early")
+    (u0, t0, c0), (u1, t1, c1) = marks
+    own = [h for h in lstats.history[n_hist:] if h.get("updates", 0) > 0]
+    return {"updates_per_s": (u1 - u0) / (t1 - t0), "updates_per_cpu_s": (u1 - u0) / (c1 - c0),
+            "updates": u1 - u0, "elapsed_s": t1 - t0, "cpu_s": c1 - c0,
+            "wait_fraction": statistics.mean(h["wait_fraction"] for h in own) if own else None,
+            "not_ready": own[-1].get("not_ready") if own else None,
+            "sample_timeouts": own[-1].get("sample_timeouts") if own else None,
+            "send_dropped": own[-1].get("send_dropped") if own else None,
+            "policy_lag": own[-1].get("policy_lag") if own else None}
+
+
+BUCKETS = [
+    ("waiting on prefetcher (SamplePrefetcher.get)", "common/replay_client.py", "get"),
+    ("batch_to_tensors", "learner/dqn.py", "batch_to_tensors"),
+    ("DQNLearner.update", "learner/dqn.py", "update"),
+    ("PriorityUpdate.encode", "common/protocol.py", "encode"),
+    ("weights encode (_encode_weights)", "learner/service.py", "_encode_weights"),
+    ("write_version_mark", "learner/checkpoint.py", "write_version_mark"),
+    ("BackgroundSender.send", "learner/service.py", "send"),
+    ("stats/metrics (MetricsWriter.write)", "common/metrics.py", "write"),
+]
+
+
+def profile_service(cfg: Any, node: Any, run: str, duration_s: float) -> dict[str, Any]:
+    svc = make_service(cfg, node, run, "bench-learner-prof")
+    stop = threading.Event()
+    loop_t: list[float] = []
+
+    def stopper() -> None:
+        wait_until(lambda: svc.dqn.updates > 0, 60, "first update", 0.01)
+        loop_t.append(time.perf_counter())
+        u0 = svc.dqn.updates
+        time.sleep(duration_s)
+        loop_t.append(time.perf_counter())
+        loop_t.append(svc.dqn.updates - u0)
+        stop.set()
+
+    threading.Thread(target=stopper, daemon=True).start()
+    prof = cProfile.Profile()
+    prof.enable()
+    try:
+        svc.run(stop)
+    finally:
+        prof.disable()
+    entries = pstats.Stats(prof).stats
+    run_ct = next((v[3] for k, v in entries.items() if k[0].endswith("learner/service.py") and k[2] == "run"), 1.0)
+    buckets = {}
+    for label, suffix, func in BUCKETS:
+        ct = sum(v[3] for k, v in entries.items() if k[0].endswith(suffix) and k[2] == func)
+        buckets[label] = {"s": round(ct, 3), "share_of_run": round(ct / run_ct, 3)}
+    top = sorted(entries.items(), key=lambda kv: kv[1][2], reverse=True)[:15]
+    return {"run_s": round(run_ct, 2), "updates": svc.dqn.updates,
+            "updates_per_s_under_profiler": round(loop_t[2] / (loop_t[1] - loop_t[0]), 1) if len(loop_t) == 3 else None,
+            "buckets": buckets,
+            "top_tottime": [{"func": f"{Path(k[0]).name}:{k[1]}({k[2]})", "tottime_s": round(v[2], 3),
+                             "cumtime_s": round(v[3], 3), "calls": v[1]} for k, v in top],
+            "note": "run_s includes start-up (first weights broadcast) and the final checkpoint"}
+
+
+# --------------------------------------------------------------------------------------------
+def orchestrate(args: argparse.Namespace) -> int:
+    import torch
+
+    from zenrl.common import protocol as P
+    from zenrl.common.config import load_config
+    from zenrl.common.transport import Node, open_router
+    from zenrl.launcher import free_port
+    from zenrl.learner.service import env_shapes
+
+    t_start = time.perf_counter()
+    rounds, warmup_s, dur_s = (1, 1.5, 4.0) if args.quick else (3, 2.0, 8.0)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    run = f"bench{uuid.uuid4().hex[:8]}"
+    keys = P.Keys(run)
+    tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-learner-"))
+    cfg = load_config(CONFIG, [f"learner.batch_size={BATCH}", f"transport.router={ep}", f"run_id={run}",
+                               f"runs_dir={tmp / 'runs'}", "learner.log_interval_s=1.0", "learner.device=cpu"])
+    out: dict[str, Any] = {"bench": "learner_throughput", "quick": bool(args.quick), "error": None}
+    router = open_router([ep])
+    procs = Procs(tmp)
+    node = None
+    try:
+        node = Node(ep, 10.0)
+        rstats = StatsWatch(node, keys.stats("replay", "replay"))
+        lstats = StatsWatch(node, f"{keys.prefix}/stats/learner/*")
+        log(f"router {ep}, run {run}, logs in {tmp}")
+        procs.start("replay", ["-m", "zenrl.cli", "replay", "--config", str(CONFIG), "--router", ep, "--run-id", run,
+                               "--set", "replay.stats_interval_s=0.25"])
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
+        prefill(node, keys, rstats, PREFILL)
+        log(f"replay pre-filled: {rstats.latest.get('size')} items")
+        spec, n_actions = env_shapes(cfg)
+        base, svc = [], []
+        for r in range(rounds):
+            b = baseline_rate(cfg, spec, n_actions, warmup_s, dur_s)
+            log(f"round {r} baseline (DQNLearner, in-memory batches): {b['updates_per_s']:.1f} updates/s")
+            base.append(b)
+            s = service_rate(cfg, node, run, f"bench-learner-{r}", warmup_s, dur_s, lstats)
+            log(f"round {r} ApexLearnerService: {s['updates_per_s']:.1f} updates/s, wait fraction {s['wait_fraction']}")
+            svc.append(s)
+        base_med = statistics.median(x["updates_per_s"] for x in base)
+        svc_med = statistics.median(x["updates_per_s"] for x in svc)
+        eff = svc_med / base_med
+        eff_cpu = (statistics.median(x["updates_per_cpu_s"] for x in svc)
+                   / statistics.median(x["updates_per_cpu_s"] for x in base))
+        out.update({
+            "learner_efficiency": round(eff, 3),
+            "target_efficiency": TARGET,
+            "learner_efficiency_cpu": round(eff_cpu, 3),
+            "service_updates_per_s": round(svc_med, 1),
+            "baseline_updates_per_s": round(base_med, 1),
+            "batch_size": BATCH,
+            "requests_in_flight": cfg.learner.requests_in_flight,
+            "publish_every_updates": cfg.learner.publish_every_updates,
+            "network_hidden": list(cfg.network.hidden),
+            "torch_threads": cfg.learner.torch_threads,
+            "replay_size": rstats.latest.get("size"),
+            "rounds": {"baseline": base, "service": svc},
+        })
+        if min(eff, eff_cpu) < TARGET or args.profile:
+            log("profiling one more learner run (cProfile)")
+            out["profile"] = profile_service(cfg, node, run, 3.0 if args.quick else 6.0)
+        out.update({
+            "notes": ("rates between two instants after a warm-up, medians of alternating rounds; the replay "
+                      "(a separate process) and the router (in this process) work during service rounds only; "
+                      "learner_efficiency_cpu = updates per CPU-second of the training thread; 2-core machine "
+                      "shared with other work"),
+            "torch": torch.__version__,
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_avg_1m": os.getloadavg()[0],
+            "wall_s": round(time.perf_counter() - t_start, 1),
+        })
+    except BaseException as e:
+        out["error"] = f"{type(e).__name__}: {e}"[:2000]
+        log(f"benchmark failed: {out['error']}")
+    finally:
+        procs.stop_all()
+        if node is not None:
+            node.close()
+        router.close()
+    print(json.dumps(out))
+    return 1 if out.get("error") else 0
+
+
+def _interrupt(*_: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one short round")
+    ap.add_argument("--profile", action="store_true", help="profile the learner even if it meets the target")
+    args = ap.parse_args(argv)
+    signal.signal(signal.SIGTERM, _interrupt)
+    return orchestrate(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

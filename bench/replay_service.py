@@ -1,0 +1,628 @@
+"""Replay service throughput over Zenoh (issue 2): a real ``zenrl replay`` process vs raw Zenoh.
+
+Measures, in one run, on loopback through an in-process Zenoh router (every other party is a
+separate OS process, all Zenoh clients of that router):
+
+  * ``ingest`` - transitions/s inserted by a ``zenrl replay`` process fed by 2 publisher
+    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of 64 transitions with
+    priorities), measured at the receiver from the service's own stats
+    (``inserted_total`` with ``replay.stats_interval_s`` = 0.05 s);
+  * ``raw`` - the same byte stream (the same encoded ``transitions`` messages, put with the
+    same BLOCK publisher settings) from 2 publisher processes to a raw Zenoh subscriber process
+    that only takes the bytes (``payload.to_bytes()``) and counts, measured at the receiver
+    (first to last receipt);
+  * ``sample`` - batches/s of 512 served by the replay to one client process keeping 4 requests
+    in flight (``SamplePrefetcher``), after the ingest rounds filled it.
+
+Raw and service rounds alternate (raw, service, raw, service, ...) and the medians are
+compared: ``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
+
+Progress goes to stderr; the last stdout line is one JSON object.
+
+    python bench/replay_service.py            # full run (~1.5-2 min)
+    python bench/replay_service.py --quick    # one short round each (~30 s)
+
+Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
+``--role sampler``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+CHUNK = 64
+SAMPLE_BATCH = 512
+IN_FLIGHT = 4
+N_PUBLISHERS = 2
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers shared by the roles
+# ---------------------------------------------------------------------------------------------
+def watch_parent(stop: threading.Event) -> None:
+    """Role processes end by themselves if the benchmark that started them is gone."""
+    parent = int(os.environ.get("BENCH_PARENT_PID", "0") or 0)
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    if not parent:
+        return
+
+    def loop() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                stop.set()
+                time.sleep(5)
+                os._exit(3)
+
+    threading.Thread(target=loop, daemon=True).start()
+
+
+def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray]]:
+    """``count`` distinct CartPole-sized Ape-X chunks of CHUNK transitions with priorities."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        b = CHUNK
+        batch = {
+            "obs": rng.standard_normal((b, 4)).astype(np.float32),
+            "action": rng.integers(0, 2, b).astype(np.int64),
+            "reward": rng.random(b).astype(np.float32) * 3,
+            "next_obs": rng.standard_normal((b, 4)).astype(np.float32),
+            "terminated": rng.random(b) < 0.02,
+            "truncated": np.zeros(b, bool),
+            "n": np.full(b, 3, np.uint8),
+        }
+        out.append((batch, (rng.random(b) + 0.01).astype(np.float32)))
+    return out
+
+
+def encoded_pool(seed: int, count: int, actor_id: str) -> list[bytes]:
+    from zenrl.common import protocol as P
+
+    return [P.TransitionBatch(actor_id=actor_id, policy_version=0, seq=i, data=b, priorities=p).encode()
+            for i, (b, p) in enumerate(cartpole_batches(seed, count))]
+
+
+def wait_for_go(node: Any, keys: Any, pub_id: str, stop: threading.Event, timeout_s: float = 60) -> bool:
+    go = node.subscribe_latest(f"{keys.prefix}/bench/go")
+    node.token(keys.alive("benchpub", pub_id))
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        if go.wait(0.1) is not None:
+            return True
+        if time.monotonic() > deadline:
+            return False
+    return False
+
+
+# ---------------------------------------------------------------------------------------------
+# roles
+# ---------------------------------------------------------------------------------------------
+def role_pub(args: argparse.Namespace) -> int:
+    """Publish for ``--duration`` s after the go signal; ``--mode raw`` puts pre-encoded
+    ``transitions`` messages, ``--mode client`` inserts the same batches with ZenohReplayClient."""
+    from zenrl.common import protocol as P
+    from zenrl.common.replay_client import ZenohReplayClient
+    from zenrl.common.transport import Node
+
+    stop = threading.Event()
+    watch_parent(stop)
+    keys = P.Keys(args.run)
+    pool_n = 64
+    sent_warm = 0
+    with Node(args.router, 20.0) as node:
+        deadline = time.monotonic() + 30
+        if args.mode == "raw":
+            payloads = encoded_pool(args.seed, pool_n, args.id)
+            pub = node.publisher(keys.transitions(args.id))
+            while not pub.matching_status.matching:  # the raw subscriber is there
+                if time.monotonic() > deadline or stop.is_set():
+                    return 3
+                time.sleep(0.05)
+            send = None
+        else:
+            batches = cartpole_batches(args.seed, pool_n)
+            client = ZenohReplayClient(node, keys, args.id)
+            while not node.alive_now(keys.alive_role("replay"), 1.0):
+                if time.monotonic() > deadline or stop.is_set():
+                    return 3
+        if args.mode == "client":
+            client.insert(*batches[0], policy_version=0)  # declares the publisher
+            sent_warm = 1
+            time.sleep(0.3)
+        if not wait_for_go(node, keys, args.id, stop):
+            return 4
+        i = 0
+        t0 = time.perf_counter()
+        end = t0 + args.duration
+        if args.mode == "raw":
+            while not stop.is_set():
+                for _ in range(32):
+                    pub.put(payloads[i % pool_n])
+                    i += 1
+                if time.perf_counter() >= end:
+                    break
+        else:
+            while not stop.is_set():
+                for _ in range(32):
+                    b, p = batches[i % pool_n]
+                    client.insert(b, p, policy_version=0)
+                    i += 1
+                if time.perf_counter() >= end:
+                    break
+            client.flush_backlog()
+        elapsed = time.perf_counter() - t0
+        extra = {}
+        if args.mode == "client":
+            extra = {"sent_chunks_client": client.sent_chunks, "undelivered": client.undelivered_chunks,
+                     "backlog": client.backlog, "warmup_chunks": sent_warm}
+        res = {"sent_chunks": i + sent_warm, "loop_chunks": i, "elapsed_s": elapsed,
+               "send_rate_items_s": i * CHUNK / elapsed, **extra}
+        # Closing the session while messages are still queued on their way loses them, so stay
+        # until the benchmark has seen them arrive (it says so on bench/release).
+        release = node.subscribe_latest(f"{keys.prefix}/bench/release")
+        node.put(f"{keys.prefix}/bench/sent/{args.id}", json.dumps(res).encode())
+        deadline = time.monotonic() + 120
+        while not stop.is_set() and time.monotonic() < deadline and release.wait(0.1) is None:
+            pass
+    print(json.dumps(res), flush=True)
+    return 0
+
+
+def role_rawsub(args: argparse.Namespace) -> int:
+    """Count messages on ``transitions/*``; print counts and first/last receipt times after the
+    stream has been idle for ``--idle`` s (or on SIGTERM)."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import open_session
+
+    stop = threading.Event()
+    watch_parent(stop)
+    keys = P.Keys(args.run)
+    st = {"n": 0, "bytes": 0, "first": None, "last": None}
+    lock = threading.Lock()
+
+    def cb(sample: Any) -> None:
+        data = sample.payload.to_bytes()
+        t = time.perf_counter()
+        with lock:
+            if st["first"] is None:
+                st["first"] = t
+            st["last"] = t
+            st["n"] += 1
+            st["bytes"] += len(data)
+
+    session = open_session(args.router, 20.0)
+    try:
+        sub = session.declare_subscriber(keys.transitions_all, cb)
+        expect: list[int] = []
+        exp_sub = session.declare_subscriber(f"{keys.prefix}/bench/expect",
+                                             lambda smp: expect.append(int(smp.payload.to_bytes())))
+        token = session.liveliness().declare_token(keys.alive("rawsub", "rawsub"))  # keep a reference
+        deadline = time.monotonic() + args.max_s
+        while not stop.wait(0.05):
+            with lock:
+                last, n = st["last"], st["n"]
+            if expect and n >= expect[-1]:
+                break
+            if expect and (last is None or time.perf_counter() - last > args.idle):
+                break  # some never came
+            if time.monotonic() > deadline:
+                break
+        exp_sub.undeclare()
+        token.undeclare()
+        sub.undeclare()
+    finally:
+        session.close()
+    n = st["n"]
+    span = (st["last"] - st["first"]) if n > 1 else 0.0
+    print(json.dumps({"messages": n, "expected": expect[-1] if expect else None, "bytes": st["bytes"], "span_s": span,
+                      "items_per_s": (n - 1) * CHUNK / span if span > 0 else None,
+                      "mb_per_s": st["bytes"] / span / 1e6 if span > 0 else None}), flush=True)
+    return 0
+
+
+def role_sampler(args: argparse.Namespace) -> int:
+    """Sample batches of 512 with 4 requests in flight for ``--duration`` s after a warm-up."""
+    from zenrl.common import protocol as P
+    from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
+    from zenrl.common.transport import Node
+
+    stop = threading.Event()
+    watch_parent(stop)
+    keys = P.Keys(args.run)
+    with Node(args.router, 20.0) as node:
+        client = ZenohReplayClient(node, keys, "bench-sampler", timeout_s=5.0)
+        pf = SamplePrefetcher(client, SAMPLE_BATCH, lambda: 0.4, IN_FLIGHT).start()
+        try:
+            warm_end = time.perf_counter() + args.warmup
+            while time.perf_counter() < warm_end and not stop.is_set():
+                pf.get(0.5)
+            n = items = 0
+            t0 = time.perf_counter()
+            end = t0 + args.duration
+            while time.perf_counter() < end and not stop.is_set():
+                s = pf.get(0.5)
+                if s is not None:
+                    n += 1
+                    items += len(s.keys)
+            el = time.perf_counter() - t0
+        finally:
+            pf.stop()
+    print(json.dumps({"batches": n, "elapsed_s": el, "batches_per_s": n / el, "items_per_s": items / el,
+                      "not_ready": pf.not_ready, "timeouts": pf.timeouts, "errors": pf.errors}), flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# orchestration
+# ---------------------------------------------------------------------------------------------
+class Procs:
+    """OS processes started by the benchmark; all stopped in :meth:`stop_all` (SIGTERM, then
+    SIGKILL after a grace period)."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, argv: list[str], capture: bool = False) -> subprocess.Popen:
+        logf = open(self.tmp / f"{name}.log", "ab")
+        env = dict(os.environ, BENCH_PARENT_PID=str(os.getpid()), ZENRL_PARENT_PID=str(os.getpid()))
+        p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stderr=logf,
+                             stdout=subprocess.PIPE if capture else logf, text=capture or None)
+        logf.close()
+        self.procs.append((name, p))
+        return p
+
+    def log_text(self, name: str) -> str:
+        p = self.tmp / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def stop(self, p: subprocess.Popen, grace_s: float = 10.0) -> None:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    def stop_all(self) -> None:
+        for _, p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for _, p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def last_json(text: str) -> dict[str, Any]:
+    for line in reversed(text.strip().splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            return json.loads(line)
+    raise RuntimeError(f"no JSON in output: {text[-500:]!r}")
+
+
+def communicate(procs: Procs, name: str, p: subprocess.Popen, timeout_s: float) -> dict[str, Any]:
+    try:
+        out, _ = p.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        procs.stop(p)
+        out, _ = p.communicate()
+    if p.returncode != 0:
+        raise RuntimeError(f"{name} exited with {p.returncode}: {procs.log_text(name)[-2000:]}")
+    return last_json(out)
+
+
+class StatsWatch:
+    """Collects ``(time, values)`` of the replay's stats messages."""
+
+    def __init__(self, node: Any, keys: Any) -> None:
+        from zenrl.common import protocol as P
+
+        self._P = P
+        self.samples: list[tuple[float, dict[str, Any]]] = []
+        self._lock = threading.Lock()
+        node.subscribe(keys.stats("replay", "replay"), self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        s = self._P.Stats.decode(payload)
+        with self._lock:
+            self.samples.append((s.time, dict(s.values)))
+
+    def snapshot(self) -> list[tuple[float, dict[str, Any]]]:
+        with self._lock:
+            return list(self.samples)
+
+    def latest(self, name: str, default: Any = 0) -> Any:
+        with self._lock:
+            return self.samples[-1][1].get(name, default) if self.samples else default
+
+
+class SentWatch:
+    """The publishers' end-of-stream reports (``bench/sent/<id>``) of one run."""
+
+    def __init__(self, node: Any, prefix: str) -> None:
+        self.reports: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        node.subscribe(f"{prefix}/bench/sent/*", self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            self.reports[key.rsplit("/", 1)[-1]] = json.loads(payload)
+
+    def wait(self, n: int, timeout_s: float) -> list[dict[str, Any]]:
+        wait_until(lambda: len(self.reports) >= n, timeout_s, f"{n} publishers to finish")
+        with self._lock:
+            return list(self.reports.values())
+
+
+def wait_until(cond, timeout_s: float, what: str, interval_s: float = 0.05):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(interval_s)
+
+
+def go(node: Any, keys: Any, n: int) -> float:
+    wait_until(lambda: len(node.alive_now(keys.alive_role("benchpub"), 1.0)) >= n, 60, f"{n} publishers ready")
+    t = time.time()
+    node.put(f"{keys.prefix}/bench/go", b"go")
+    return t
+
+
+def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float) -> list[str]:
+    return [str(Path(__file__).resolve()), "--role", "pub", "--mode", role_mode, "--router", ep, "--run", run,
+            "--id", pid, "--seed", str(seed), "--duration", str(duration)]
+
+
+def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float) -> dict[str, Any]:
+    from zenrl.common import protocol as P
+
+    rrun = f"{run}-raw{r}"
+    keys = P.Keys(rrun)
+    sent_watch = SentWatch(node, keys.prefix)
+    sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
+                                     "--idle", "5", "--max-s", str(duration + 120)], capture=True)
+    wait_until(lambda: node.alive_now(keys.alive_role("rawsub"), 1.0), 60, "raw subscriber")
+    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration), capture=True)
+            for k in range(N_PUBLISHERS)]
+    go(node, keys, N_PUBLISHERS)
+    sent = sum(x["sent_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
+    node.put(f"{keys.prefix}/bench/expect", str(sent).encode())
+    sres = communicate(procs, f"rawsub{r}", sub, 60)
+    node.put(f"{keys.prefix}/bench/release", b"1")
+    pres = [communicate(procs, f"rawpub{r}-{k}", p, 30) for k, p in enumerate(pubs)]
+    return {"items_per_s": sres["items_per_s"], "mb_per_s": sres["mb_per_s"], "received_chunks": sres["messages"],
+            "sent_chunks": sent, "span_s": sres["span_s"],
+            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres)}
+
+
+def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final: int) -> tuple[float | None, float]:
+    """Items/s between the last stats sample before inserts rose after ``t_go`` and the first
+    one showing the final count."""
+    pts = [(t, int(v.get("inserted_total", 0))) for t, v in samples]
+    pre = [i for i, (t, _) in enumerate(pts) if t <= t_go]
+    if not pre:
+        return None, 0.0
+    base_i = pre[-1]
+    base_n = pts[base_i][1]
+    start = None
+    for i in range(base_i + 1, len(pts)):
+        if pts[i][1] > base_n:
+            start = i - 1
+            break
+    if start is None:
+        return None, 0.0
+    end = next((i for i in range(start, len(pts)) if pts[i][1] >= final), len(pts) - 1)
+    dt = pts[end][0] - pts[start][0]
+    return ((pts[end][1] - pts[start][1]) / dt if dt > 0 else None), dt
+
+
+def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str, r: int,
+                  duration: float) -> dict[str, Any]:
+    from zenrl.common import protocol as P
+
+    keys = P.Keys(run)
+    sent_watch = SentWatch(node, keys.prefix)
+    pubs = [procs.start(f"svcpub{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration), capture=True)
+            for k in range(N_PUBLISHERS)]
+    # the publishers' warm-up chunks must be in before the clock starts
+    wait_until(lambda: len(node.alive_now(keys.alive_role("benchpub"), 1.0)) >= N_PUBLISHERS, 60, "publishers ready")
+    base_total = stats.latest("inserted_total")
+    wait_until(lambda: stats.latest("inserted_total") >= base_total and stats.latest("ingest_queue", 1) == 0, 10,
+               "replay idle")
+    time.sleep(0.2)
+    t_go = go(node, keys, N_PUBLISHERS)
+    pres = sent_watch.wait(N_PUBLISHERS, duration + 60)
+    pre_go = [v for t, v in stats.snapshot() if t <= t_go]
+    expected = (pre_go[-1]["inserted_total"] if pre_go else 0) + sum(x["loop_chunks"] for x in pres) * CHUNK
+    # the service's count once the stream is fully ingested (or has stopped changing for 5 s)
+    last = [stats.latest("inserted_total"), time.monotonic()]
+
+    def settled() -> bool:
+        n = stats.latest("inserted_total")
+        if n >= expected:
+            return True
+        if n != last[0]:
+            last[0], last[1] = n, time.monotonic()
+        return time.monotonic() - last[1] > 5.0
+
+    wait_until(settled, 120, "replay to ingest the stream")
+    time.sleep(0.1)
+    node.put(f"{keys.prefix}/bench/release", b"1")
+    for k, p in enumerate(pubs):
+        communicate(procs, f"svcpub{r}-{k}", p, 30)
+    final = stats.latest("inserted_total")
+    rate, dt = service_rate(stats.snapshot(), t_go, final)
+    sent = sum(x["loop_chunks"] for x in pres) * CHUNK
+    ingested = final - (pre_go[-1]["inserted_total"] if pre_go else 0)
+    return {"items_per_s": rate, "window_s": dt, "sent_items": sent, "ingested_items": ingested,
+            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres),
+            "dropped_queue_full": stats.latest("dropped_queue_full"),
+            "undelivered_chunks": sum(x.get("undelivered", 0) for x in pres)}
+
+
+def inprocess_ingest(duration_s: float) -> dict[str, Any]:
+    """Reference: ReplayService.ingest() on the same encoded chunks in this process, no network
+    (the service's own ceiling: decode, validate, insert)."""
+    from zenrl.common.config import load_config
+    from zenrl.replay.service import ReplayService
+
+    svc = ReplayService(load_config(None, ["replay.capacity=100000"]), None, "benchref")
+    pool = encoded_pool(100, 64, "pub0")
+    for p in pool[:8]:
+        svc.ingest(p)
+    items = i = 0
+    t0, c0 = time.perf_counter(), time.thread_time()
+    while time.perf_counter() - t0 < duration_s:
+        for _ in range(32):
+            items += svc.ingest(pool[i % 64])
+            i += 1
+    el, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return {"items_per_s": items / el, "items_per_cpu_s": items / cpu, "us_per_chunk_cpu": cpu / i * 1e6}
+
+
+def orchestrate(args: argparse.Namespace) -> int:
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node, open_router
+    from zenrl.launcher import free_port
+
+    t_start = time.perf_counter()
+    rounds, duration, sample_s = (1, 2.0, 3.0) if args.quick else (3, 6.0, 8.0)
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    run = f"bench{uuid.uuid4().hex[:8]}"
+    keys = P.Keys(run)
+    tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-replay-"))
+    router = open_router([ep])
+    procs = Procs(tmp)
+    node = None
+    out: dict[str, Any] = {"bench": "replay_service", "quick": bool(args.quick), "error": None}
+    try:
+        node = Node(ep, 10.0)
+        stats = StatsWatch(node, keys)
+        log(f"router {ep}, run {run}, logs in {tmp}")
+        ref = inprocess_ingest(1.0 if args.quick else 3.0)
+        log(f"reference: ReplayService.ingest in process: {ref['items_per_s']:,.0f} items/s")
+        procs.start("replay", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
+                               "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
+                               "--set", "replay.capacity=100000", "--log-level", "INFO"])
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
+        raw, svc = [], []
+        for r in range(rounds):
+            res = raw_round(procs, node, ep, run, r, duration)
+            log(f"round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
+                f"{res['received_chunks']}/{res['sent_chunks']} chunks")
+            raw.append(res)
+            res = service_round(procs, node, stats, ep, run, r, duration)
+            log(f"round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
+                f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
+            svc.append(res)
+        sampler = procs.start("sampler", [str(Path(__file__).resolve()), "--role", "sampler", "--router", ep,
+                                          "--run", run, "--duration", str(sample_s), "--warmup", "1.0"], capture=True)
+        smp = communicate(procs, "sampler", sampler, sample_s + 60)
+        log(f"sampling: {smp['batches_per_s']:.1f} batches/s of {SAMPLE_BATCH}")
+        raw_med = statistics.median(x["items_per_s"] for x in raw)
+        svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
+        svc_med = statistics.median(svc_rates) if svc_rates else None
+        ratio = svc_med / raw_med if svc_med and raw_med else None
+        out.update({
+            "bench": "replay_service",
+            "quick": bool(args.quick),
+            "ingest_ratio_vs_raw_zenoh": None if ratio is None else round(ratio, 3),
+            "target_ingest_ratio": 0.7,
+            "service_ingest_items_per_s": None if svc_med is None else round(svc_med),
+            "raw_zenoh_items_per_s": round(raw_med),
+            "inprocess_ingest_items_per_s": round(ref["items_per_s"]),
+            "inprocess_ingest_us_per_chunk_cpu": round(ref["us_per_chunk_cpu"], 1),
+            "sample_batches_per_s": round(smp["batches_per_s"], 2),
+            "sample_items_per_s": round(smp["items_per_s"]),
+            "sample_batch_size": SAMPLE_BATCH,
+            "sample_in_flight": IN_FLIGHT,
+            "sample_not_ready": smp["not_ready"],
+            "sample_timeouts": smp["timeouts"],
+            "publishers": N_PUBLISHERS,
+            "chunk_items": CHUNK,
+            "chunk_bytes": len(encoded_pool(0, 1, "pub0")[0]),
+            "rounds": {"raw": raw, "service": svc},
+            "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
+            "notes": ("rates measured at the receiver; raw = same encoded messages, same BLOCK publishers, "
+                      "a subscriber process that only copies the payload out and counts; medians of "
+                      "alternating rounds; router in the benchmark process; 2-core machine shared with "
+                      "other work, so absolute figures are noisy, the ratio less so"),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_avg_1m": os.getloadavg()[0],
+            "wall_s": round(time.perf_counter() - t_start, 1),
+        })
+    except BaseException as e:
+        out["error"] = f"{type(e).__name__}: {e}"[:2000]
+        log(f"benchmark failed: {out['error']}")
+    finally:
+        procs.stop_all()
+        if node is not None:
+            node.close()
+        router.close()
+    print(json.dumps(out))
+    return 1 if out.get("error") else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one short round of each measurement")
+    ap.add_argument("--role", choices=["pub", "rawsub", "sampler"], help=argparse.SUPPRESS)
+    ap.add_argument("--mode", choices=["raw", "client"], default="client", help=argparse.SUPPRESS)
+    ap.add_argument("--router", help=argparse.SUPPRESS)
+    ap.add_argument("--run", help=argparse.SUPPRESS)
+    ap.add_argument("--id", default="pub0", help=argparse.SUPPRESS)
+    ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--duration", type=float, default=5.0, help=argparse.SUPPRESS)
+    ap.add_argument("--warmup", type=float, default=1.0, help=argparse.SUPPRESS)
+    ap.add_argument("--idle", type=float, default=1.5, help=argparse.SUPPRESS)
+    ap.add_argument("--max-s", type=float, default=120.0, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.role == "pub":
+        return role_pub(args)
+    if args.role == "rawsub":
+        return role_rawsub(args)
+    if args.role == "sampler":
+        return role_sampler(args)
+    # SIGTERM on the benchmark itself still runs the cleanup in orchestrate's finally
+    signal.signal(signal.SIGTERM, _interrupt)
+    return orchestrate(args)
+
+
+def _interrupt(*_: Any) -> None:
+    raise KeyboardInterrupt
+
+
+if __name__ == "__main__":
+    sys.exit(main())
