@@ -31,6 +31,8 @@ class TransportConfig(_Section):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Endpoints the embedded router of `zenrl run` listens on.")
     router_config: Optional[str] = Field(None, description="JSON5 config file for the embedded router (overrides `listen`).")
     client_config: Optional[str] = Field(None, description="JSON5 file with extra Zenoh client settings (TLS root CA, user/password) merged under the ones zenrl sets.")
+    shared_memory: bool = Field(False, description="Let same-host processes exchange payloads through shared memory (off: it dropped messages under CPU starvation here, and containers do not share /dev/shm).")
+    close_linger_s: float = Field(0.3, ge=0, le=5, description="Pause before closing a session that published, so queued messages leave first.")
     connect_timeout_s: float = Field(30.0, ge=0, description="How long a client waits for the router at start-up.")
     query_timeout_s: float = Field(5.0, gt=0, description="Timeout of every remote query (sample requests, weight fetches, slots).")
     max_message_bytes: int = Field(64 * 1024 * 1024, ge=1024, le=1 << 30, description="Cap on one wire message; larger ones are refused on both ends.")
@@ -46,6 +48,8 @@ class NetworkConfig(_Section):
     hidden: list[int] = Field(default_factory=lambda: [256, 256], description="Hidden layer sizes of the MLP torso (and of the head after a conv/dict encoder).")
     dueling: bool = Field(True, description="Dueling Q head (value + advantage streams).")
     conv: bool = Field(True, description="Use the Nature-DQN conv torso for uint8 image observations.")
+    activation: Literal["relu", "tanh"] = Field("relu", description="Activation of the hidden MLP layers.")
+    shared_torso: bool = Field(True, description="A3C: policy and value share the MLP torso; false gives each its own MLP on the shared encoder (Stable-Baselines3's default actor-critic).")
 
     @model_validator(mode="after")
     def _check(self) -> "NetworkConfig":
@@ -125,6 +129,15 @@ class A3CConfig(_Section):
     rmsprop_eps: float = Field(1e-5, gt=0, description="RMSProp epsilon.")
 
 
+class SelfPlayConfig(_Section):
+    enabled: bool = Field(False, description="Self-play (zenrl/BurgerWar* envs): actors also play frozen snapshots of the learner, read from its checkpoint directory (needs a filesystem shared with the learner, as in `zenrl run`).")
+    snapshot_prob: float = Field(0.3, ge=0, le=1, description="Probability that an episode is played against a snapshot (once one is held) instead of the scripted env.kwargs.opponents.")
+    snapshot_interval_s: float = Field(300.0, gt=0, description="Each actor adds the learner's newest checkpoint to its league of snapshots at most this often.")
+    max_snapshots: int = Field(10, ge=1, description="Snapshots each actor keeps (the oldest is dropped first).")
+    epsilon: float = Field(0.05, ge=0, le=1, description="Random-action probability of a snapshot opponent.")
+    checkpoint_dir: Optional[str] = Field(None, description="Where snapshots are read from (default: <runs_dir>/<run_id>/checkpoints).")
+
+
 class RunConfig(_Section):
     algo: Literal["apex", "a3c"] = Field("apex", description="Algorithm family: apex (Ape-X DQN) or a3c.")
     run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Run id (key prefix zenrl/<run_id>/ and runs/<run_id>/); default: generated.")
@@ -143,6 +156,7 @@ class RunConfig(_Section):
     learner: LearnerConfig = Field(default_factory=LearnerConfig)
     evaluator: EvalConfig = Field(default_factory=EvalConfig)
     a3c: A3CConfig = Field(default_factory=A3CConfig)
+    selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
 
 
 # --------------------------------------------------------------------------------------------

@@ -124,11 +124,14 @@ class ObsEncoder(nn.Module):
         return torch.cat([self.encoders[n.replace("/", "__")](obs[n]) for n in self.names], dim=1)
 
 
-def mlp(in_dim: int, hidden: list[int]) -> tuple[nn.Sequential, int]:
+_ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
+
+
+def mlp(in_dim: int, hidden: list[int], activation: str = "relu") -> tuple[nn.Sequential, int]:
     layers: list[nn.Module] = []
     d = in_dim
     for h in hidden:
-        layers += [nn.Linear(d, h), nn.ReLU()]
+        layers += [nn.Linear(d, h), _ACTIVATIONS[activation]()]
         d = h
     return nn.Sequential(*layers), d
 
@@ -140,7 +143,7 @@ class QNetwork(nn.Module):
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, cfg: NetworkConfig) -> None:
         super().__init__()
         self.encoder = ObsEncoder(spec, cfg.conv)
-        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden))
+        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)
         self.dueling = cfg.dueling
         if cfg.dueling:
             self.value = nn.Linear(d, 1)
@@ -157,18 +160,23 @@ class QNetwork(nn.Module):
 
 
 class ActorCritic(nn.Module):
-    """Policy and value: ``{name: tensor[B, ...]}`` -> (logits float32[B, A], value float32[B])."""
+    """Policy and value: ``{name: tensor[B, ...]}`` -> (logits float32[B, A], value float32[B]).
+    With ``cfg.shared_torso`` false the value head has its own MLP (``value_trunk``) on the shared
+    encoder."""
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, cfg: NetworkConfig) -> None:
         super().__init__()
         self.encoder = ObsEncoder(spec, cfg.conv)
-        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden))
+        self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)
+        self.value_trunk = None if cfg.shared_torso else mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)[0]
         self.policy = nn.Linear(d, n_actions)
         self.value = nn.Linear(d, 1)
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.trunk(self.encoder(obs))
-        return self.policy(h), self.value(h).squeeze(1)
+        z = self.encoder(obs)
+        h = self.trunk(z)
+        hv = h if self.value_trunk is None else self.value_trunk(z)
+        return self.policy(h), self.value(hv).squeeze(1)
 
 
 # --------------------------------------------------------------------------------------------

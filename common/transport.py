@@ -21,6 +21,7 @@ import multiprocessing
 import os
 import signal
 import threading
+import time
 from typing import Any, Callable, Iterable
 
 import zenoh
@@ -77,9 +78,21 @@ def client_config(endpoint: str, connect_timeout_s: float = 30.0,
         raise TransportError(f"client config {config_file!r} is invalid: {e}") from e
     for k, v in settings.items():
         cfg.insert_json5(k, json.dumps(v))
-    for k, v in (extra or {}).items():
+    for k, v in _paths(extra or {}):
         cfg.insert_json5(k, json.dumps(v))
     return cfg
+
+
+def _paths(tree: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``{"a": {"b": 1}}`` -> ``[("a/b", 1)]`` (leaves only)."""
+    out: list[tuple[str, Any]] = []
+    for k, v in tree.items():
+        path = f"{prefix}/{k}" if prefix else k
+        if isinstance(v, dict) and v:
+            out.extend(_paths(v, path))
+        else:
+            out.append((path, v))
+    return out
 
 
 def _nest(path: str, value: Any) -> dict[str, Any]:
@@ -150,11 +163,17 @@ class Node:
         self.session = session if session is not None else open_session(endpoint, connect_timeout_s, extra, config_file)
         self._entities: list[Any] = []
         self._closed = False
+        self._published = False
+        #: pause before closing a session that published (queued messages leave first)
+        self.close_linger_s = 0.0
 
     @classmethod
     def from_config(cls, tcfg: Any) -> "Node":
         """A node for a :class:`~zenrl.common.config.TransportConfig`."""
-        return cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config)
+        node = cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config,
+                   extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}}})
+        node.close_linger_s = tcfg.close_linger_s
+        return node
 
     # -- context management ---------------------------------------------------------------
     def __enter__(self) -> "Node":
@@ -167,6 +186,8 @@ class Node:
         if self._closed:
             return
         self._closed = True
+        if self._published and self.close_linger_s > 0:
+            time.sleep(self.close_linger_s)
         for e in reversed(self._entities):
             try:
                 e.undeclare()
@@ -184,10 +205,12 @@ class Node:
             express=express,
         )
         self._entities.append(pub)
+        self._published = True
         return pub
 
     def put(self, key: str, payload: bytes, low_priority: bool = False) -> None:
         """One-off put with BLOCK congestion control."""
+        self._published = True
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK,
                          priority=zenoh.Priority.DATA_LOW if low_priority else zenoh.Priority.DATA)
 

@@ -1,0 +1,236 @@
+"""Trained policies out of checkpoint files, for tools and for self-play opponents.
+
+A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``, written by the learner) is one dict
+loaded with ``torch.load(..., weights_only=True)``; this module only needs its ``"algo"``, the
+resolved ``"config"`` and the network weights:
+
+* Ape-X: ``state["learner"]["online"]`` (a :class:`~zenrl.common.networks.QNetwork` state dict);
+* A3C: ``state["model"]`` (an :class:`~zenrl.common.networks.ActorCritic` state dict).
+
+It lives in ``common/`` so that actors (which may not import ``learner/``) can load frozen
+snapshots as opponents (:class:`SnapshotLeague`, :class:`SelfPlayWrapper`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from zenrl.common.config import RunConfig, SelfPlayConfig, config_from_dict
+from zenrl.common.errors import CheckpointError
+from zenrl.common.networks import ActorCritic, QNetwork, flat_obs, num_actions, obs_spec
+
+log = logging.getLogger(__name__)
+
+_CKPT_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
+
+
+# --------------------------------------------------------------------------------------------
+# Reading checkpoints
+# --------------------------------------------------------------------------------------------
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The training-state dict of ``path`` (``torch.load(..., weights_only=True)`` on the CPU);
+    :class:`CheckpointError` if it is missing, unreadable or not a zenrl checkpoint."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
+    except Exception as e:  # torch raises many types for truncated/corrupt archives
+        raise CheckpointError(f"checkpoint {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
+    if not isinstance(state, dict) or "format" not in state or "config" not in state:
+        raise CheckpointError(f"checkpoint {str(path)!r} is not a zenrl training state")
+    return state
+
+
+def checkpoint_config(state: Mapping[str, Any]) -> RunConfig:
+    """The run configuration saved in a checkpoint."""
+    return config_from_dict(state["config"])
+
+
+def policy_weights(state: Mapping[str, Any]) -> tuple[str, Mapping[str, torch.Tensor]]:
+    """``("apex", online Q state dict)`` or ``("a3c", actor-critic state dict)``."""
+    algo = state.get("algo", "apex")
+    if algo == "a3c":
+        if "model" not in state:
+            raise CheckpointError("a3c checkpoint has no 'model' state dict")
+        return "a3c", state["model"]
+    learner = state.get("learner")
+    if not isinstance(learner, Mapping) or "online" not in learner:
+        raise CheckpointError(f"{algo} checkpoint has no learner.online state dict")
+    return "apex", learner["online"]
+
+
+def build_network(state: Mapping[str, Any], observation_space: gym.Space, action_space: gym.Space) -> torch.nn.Module:
+    """The checkpoint's network (QNetwork for apex, ActorCritic for a3c), weights loaded, in eval
+    mode on the CPU. ``observation_space`` / ``action_space`` are the single env's spaces; a
+    mismatch with the trained network is a :class:`CheckpointError` naming the difference."""
+    cfg = checkpoint_config(state)
+    algo, weights = policy_weights(state)
+    cls = ActorCritic if algo == "a3c" else QNetwork
+    net = cls(obs_spec(observation_space), num_actions(action_space), cfg.network)
+    try:
+        net.load_state_dict(weights)
+    except RuntimeError as e:
+        raise CheckpointError(f"the checkpoint's network does not fit this env's spaces "
+                              f"(obs {observation_space}, actions {action_space}): {e}") from None
+    return net.eval()
+
+
+def list_checkpoint_files(directory: str | os.PathLike[str]) -> list[Path]:
+    """``ckpt-<updates>.pt`` files in ``directory``, oldest first (empty if none / no dir)."""
+    d = Path(directory)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if _CKPT_NAME.match(p.name))
+
+
+# --------------------------------------------------------------------------------------------
+# Greedy policy on single observations
+# --------------------------------------------------------------------------------------------
+def single_to_flat(obs: Any) -> dict[str, np.ndarray]:
+    """One observation (array or dict of arrays, no batch dim) -> flat arrays with B = 1."""
+    if isinstance(obs, Mapping):
+        return flat_obs({k: np.asarray(v)[None] for k, v in obs.items()})
+    return flat_obs(np.asarray(obs)[None])
+
+
+def greedy_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray]) -> np.ndarray:
+    """int64[B]: argmax of the Q values (or of the policy logits for an actor-critic) for flat
+    batched observations ``{"obs" | "obs/<key>": array[B, ...]}``."""
+    with torch.no_grad():
+        out = net({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()})
+        if isinstance(out, tuple):
+            out = out[0]
+        return out.argmax(1).numpy()
+
+
+class GreedyPolicy:
+    """``policy(obs) -> int`` on single observations (what the match env's ``opponent_policy``
+    and the tools call), with optional epsilon-random actions from its own generator.
+
+    ``net``: a QNetwork / ActorCritic; ``n_actions``: size of the discrete action space.
+    """
+
+    def __init__(self, net: torch.nn.Module, n_actions: int, epsilon: float = 0.0, seed: int | None = None,
+                 name: str = "policy") -> None:
+        self.net = net
+        self.n_actions = int(n_actions)
+        self.epsilon = float(epsilon)
+        self.rng = np.random.default_rng(seed)
+        self.name = name
+
+    def __call__(self, obs: Any) -> int:
+        if self.epsilon > 0 and self.rng.random() < self.epsilon:
+            return int(self.rng.integers(self.n_actions))
+        return int(greedy_actions(self.net, single_to_flat(obs))[0])
+
+    def batch(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
+        """int64[B] greedy actions for flat batched observations (no epsilon)."""
+        return greedy_actions(self.net, flat)
+
+
+def load_policy(path: str | os.PathLike[str], observation_space: gym.Space, action_space: gym.Space,
+                epsilon: float = 0.0, seed: int | None = None) -> GreedyPolicy:
+    """Checkpoint file -> :class:`GreedyPolicy` for an env with these (single) spaces."""
+    state = read_checkpoint(path)
+    net = build_network(state, observation_space, action_space)
+    return GreedyPolicy(net, num_actions(action_space), epsilon, seed, name=Path(path).name)
+
+
+# --------------------------------------------------------------------------------------------
+# Self-play: a league of frozen learner snapshots as match opponents
+# --------------------------------------------------------------------------------------------
+class SnapshotLeague:
+    """Frozen copies of the learner, taken from its checkpoint directory at most every
+    ``cfg.snapshot_interval_s`` (the newest checkpoint then, if not already held), at most
+    ``cfg.max_snapshots`` kept (the oldest dropped first). One league per actor process; its
+    envs share it. Never raises on a missing/vanishing checkpoint: it logs and keeps what it has.
+
+    ``observation_space`` / ``action_space``: the single match env's spaces.
+    """
+
+    def __init__(self, cfg: SelfPlayConfig, checkpoint_dir: str | os.PathLike[str], observation_space: gym.Space,
+                 action_space: gym.Space, seed: int = 0) -> None:
+        self.cfg = cfg
+        self.dir = Path(checkpoint_dir)
+        self.observation_space, self.action_space = observation_space, action_space
+        self.rng = np.random.default_rng(seed)
+        self.snapshots: list[tuple[str, torch.nn.Module]] = []
+        self._next_refresh = 0.0
+        self._warned = False
+
+    def refresh(self, now: float | None = None) -> bool:
+        """Add the newest checkpoint if the interval has passed and it is new; True if added."""
+        now = time.monotonic() if now is None else now
+        if now < self._next_refresh:
+            return False
+        self._next_refresh = now + self.cfg.snapshot_interval_s
+        files = list_checkpoint_files(self.dir)
+        if not files:
+            if not self._warned:
+                log.info("self-play: no checkpoint in %s yet; scripted opponents only", self.dir)
+                self._warned = True
+            return False
+        newest = files[-1]
+        if any(name == newest.name for name, _ in self.snapshots):
+            return False
+        try:
+            net = build_network(read_checkpoint(newest), self.observation_space, self.action_space)
+        except CheckpointError as e:  # pruned between listing and reading, or half written
+            log.warning("self-play: snapshot skipped: %s", e)
+            return False
+        self.snapshots.append((newest.name, net))
+        del self.snapshots[:-self.cfg.max_snapshots]
+        log.info("self-play: snapshot %s added (%d held)", newest.name, len(self.snapshots))
+        return True
+
+    def sample(self) -> tuple[str, torch.nn.Module] | None:
+        """A uniformly drawn snapshot, or None while the league is empty."""
+        if not self.snapshots:
+            return None
+        return self.snapshots[int(self.rng.integers(len(self.snapshots)))]
+
+
+class SelfPlayWrapper(gym.Wrapper):
+    """Per-episode opponent choice for a ``zenrl/BurgerWar*`` env: with probability
+    ``cfg.snapshot_prob`` (once the league holds a snapshot) the episode is played against a
+    snapshot drawn from ``league`` (the env's ``"policy"`` opponent), otherwise against the env's
+    own draw from its scripted ``opponents``. Observations, rewards and the rest pass through.
+    """
+
+    def __init__(self, env: gym.Env, league: SnapshotLeague, seed: int = 0) -> None:
+        super().__init__(env)
+        self.league = league
+        self.rng = np.random.default_rng(seed)
+        self._policy = GreedyPolicy(torch.nn.Identity(), num_actions(env.action_space), league.cfg.epsilon,
+                                    seed=seed + 1)
+        # The env builds its "policy" opponent lazily from this attribute on the first episode
+        # that names it (documented option ``opponent_policy``).
+        env.unwrapped.opponent_policy = self._policy
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.league.refresh()
+        options = dict(options or {})
+        if "opponent" not in options and self.league.snapshots and self.rng.random() < self.league.cfg.snapshot_prob:
+            name, net = self.league.sample()
+            self._policy.net, self._policy.name = net, name
+            options["opponent"] = "policy"
+        return self.env.reset(seed=seed, options=options)
+
+
+def wrap_selfplay(envs: list[gym.Env], cfg: RunConfig, run_id: str, seed: int) -> list[gym.Env]:
+    """Wrap an actor's envs for self-play (``cfg.selfplay``), all sharing one
+    :class:`SnapshotLeague` on ``cfg.selfplay.checkpoint_dir`` (default
+    ``<runs_dir>/<run_id>/checkpoints``, the learner's, on a shared filesystem)."""
+    sp = cfg.selfplay
+    ckpt_dir = Path(sp.checkpoint_dir) if sp.checkpoint_dir else Path(cfg.runs_dir) / run_id / "checkpoints"
+    league = SnapshotLeague(sp, ckpt_dir, envs[0].observation_space, envs[0].action_space, seed)
+    return [SelfPlayWrapper(e, league, seed + 7919 * (i + 1)) for i, e in enumerate(envs)]
