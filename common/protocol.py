@@ -173,23 +173,42 @@ def encode_array(a: np.ndarray) -> dict[str, Any]:
     return {"dtype": a.dtype.name, "shape": list(a.shape), "data": data}
 
 
+_DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
+_ARRAY_KEYS = {"dtype", "shape", "data"}
+
+
 def decode_array(name: str, m: Any) -> np.ndarray:
     """Wire map -> read-only ``np.ndarray`` view on the payload (no copy)."""
-    if not isinstance(m, dict) or set(m) != {"dtype", "shape", "data"}:
+    if type(m) is not dict or m.keys() != _ARRAY_KEYS:
         raise ProtocolError(name, "must be a map with exactly dtype, shape, data", "array")
     dtype, shape, data = m["dtype"], m["shape"], m["data"]
-    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+    dt = _DTYPES.get(dtype) if type(dtype) is str else None
+    if dt is None:
         raise ProtocolError(f"{name}.dtype", f"{dtype!r} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
-    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
+    if type(shape) is not list or len(shape) > MAX_NDIM:
         raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
-    if not isinstance(data, (bytes, bytearray)):
+    expected = dt.itemsize
+    for d in shape:
+        if type(d) is not int or d < 0:
+            raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+        expected *= d
+    if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
-    dt = np.dtype(dtype)
-    expected = math.prod(shape) * dt.itemsize
     if expected != len(data):
         raise ProtocolError(f"{name}.data", f"holds {len(data)} bytes; dtype {dtype} and shape {shape} need {expected}", "shape")
     return np.frombuffer(data, dtype=dt).reshape(shape)
+
+
+_good_field_names: set[str] = set()
+
+
+def _check_field_name(name: str, k: Any) -> None:
+    if k in _good_field_names:
+        return
+    if not isinstance(k, str) or not _FIELD_RE.match(k):
+        raise ProtocolError(f"{name}", f"array name {k!r} must be 1-128 characters of [A-Za-z0-9_.-/]", "name")
+    if len(_good_field_names) < 4096:
+        _good_field_names.add(k)
 
 
 def encode_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
@@ -204,8 +223,7 @@ def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int
         raise ProtocolError(name, f"has {len(m)} arrays, more than {MAX_FIELDS}", "size")
     out = {}
     for k, v in m.items():
-        if not isinstance(k, str) or not _FIELD_RE.match(k):
-            raise ProtocolError(f"{name}", f"array name {k!r} must be 1-128 characters of [A-Za-z0-9_.-/]", "name")
+        _check_field_name(name, k)
         a = decode_array(f"{name}.{k}", v)
         if batch is not None and (a.ndim == 0 or a.shape[0] != batch):
             raise ProtocolError(f"{name}.{k}", f"batch size {a.shape[:1]} differs from {batch}", "batch")
@@ -265,8 +283,8 @@ class Message:
 
     @classmethod
     def _from_envelope(cls, env: dict[str, Any]) -> "Message":
-        names = {f.name for f in fields(cls)}
-        got = set(env) - {"v", "t"}
+        names = _field_names(cls)
+        got = env.keys() - {"v", "t"}
         missing = sorted(n for n in names - got if not cls.SCHEMA[n].endswith("?"))
         if missing:
             raise ProtocolError(missing[0], f"missing from {cls.TYPE} message", "field")
@@ -280,6 +298,16 @@ class Message:
 
     def _validate(self) -> None:
         """Cross-field checks of a decoded message; raise ProtocolError."""
+
+
+_FIELD_NAMES: dict[type, frozenset[str]] = {}
+
+
+def _field_names(cls: type) -> frozenset[str]:
+    names = _FIELD_NAMES.get(cls)
+    if names is None:
+        names = _FIELD_NAMES[cls] = frozenset(f.name for f in fields(cls))
+    return names
 
 
 def _unpack(payload: Any, max_bytes: int) -> dict[str, Any]:

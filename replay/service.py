@@ -68,6 +68,7 @@ class ReplayService:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._stats_pub = None
+        self._spec_sig: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
         self.journal: ReplayLog | None = None
         self.restored_items = 0
         self._last_snapshot = time.monotonic()
@@ -122,6 +123,7 @@ class ReplayService:
             if self.buffer is None:
                 self.buffer = self._make_buffer(data)
                 self.buffer.start_at(rec.first_key)
+                self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             elif rec.first_key != self.buffer.inserts_total:
                 log.warning("replay log gap: expected key %d, record starts at %d", self.buffer.inserts_total, rec.first_key)
             self.buffer.insert(data, msg.priorities)
@@ -155,47 +157,92 @@ class ReplayService:
     def _ingest_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                key, payload = self._queue.get(timeout=0.2)
+                first = self._queue.get(timeout=0.2)
             except queue.Empty:
                 if self.journal is not None:
                     with self._lock:
                         self.journal.maybe_flush()
                 continue
-            self.ingest(payload, source=key)
+            batch = [first]  # drain what is queued: one insert (and tree update) for many chunks
+            while len(batch) < self.rcfg.ingest_batch_chunks:
+                try:
+                    batch.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            self.ingest_many([(payload, key) for key, payload in batch])
 
     def ingest(self, payload: bytes, source: str = "") -> int:
         """Decode, validate and insert one :class:`TransitionBatch`; returns items inserted
         (0 if rejected)."""
-        try:
-            msg = P.TransitionBatch.decode(payload, self.max_bytes)
-        except ProtocolError as e:
-            self.rejects.reject(e.reason, str(e), source)
+        return self.ingest_many([(payload, source)])
+
+    def ingest_many(self, items: list[tuple[bytes, str]]) -> int:
+        """Decode and validate each ``(payload, source)``; insert the valid ones as one batch.
+        A bad chunk is rejected and counted alone. Returns the items inserted."""
+        good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray]]] = []
+        for payload, source in items:
+            try:
+                msg = P.TransitionBatch.decode(payload, self.max_bytes)
+            except ProtocolError as e:
+                self.rejects.reject(e.reason, str(e), source)
+                continue
+            good.append((payload, msg, self._with_meta(msg)))
+        if not good:
             return 0
-        data = self._with_meta(msg)
         with self._lock:
             if self.buffer is None:
                 try:
-                    self.buffer = self._make_buffer(data)
+                    self.buffer = self._make_buffer(good[0][2])
                 except (ValueError, SpecMismatch) as e:
-                    self.rejects.reject("spec", str(e), source)
+                    self.rejects.reject("spec", str(e), items[0][1])
                     return 0
-            try:
-                keys = self.buffer.insert(data, msg.priorities)
-            except SpecMismatch as e:
-                self.rejects.reject("spec", str(e), source)
+                self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
+            ok = []
+            for payload, msg, data in good:
+                why = self._spec_mismatch(data)
+                if why:
+                    self.rejects.reject("spec", why, msg.actor_id)
+                else:
+                    ok.append((payload, msg, data))
+            if not ok:
                 return 0
-            except ValueError as e:
-                self.rejects.reject("invalid", str(e), source)
+            if len(ok) == 1:
+                data, prios = ok[0][2], ok[0][1].priorities
+            else:
+                data = {k: np.concatenate([d[k] for _, _, d in ok]) for k in ok[0][2]}
+                if all(m.priorities is not None for _, m, _ in ok):
+                    prios = np.concatenate([m.priorities for _, m, _ in ok])
+                else:  # chunks without priorities take the running max, as on their own
+                    mp = np.float32(self.buffer.max_priority)
+                    prios = np.concatenate([m.priorities if m.priorities is not None else np.full(m.batch_size, mp, np.float32)
+                                            for _, m, _ in ok])
+            try:
+                keys = self.buffer.insert(data, prios)
+            except (SpecMismatch, ValueError) as e:  # validated above; kept as a last guard
+                self.rejects.reject("invalid", str(e), ok[0][1].actor_id)
                 return 0
             if self.journal is not None:
-                self.journal.append(int(keys[0]), len(keys), payload)
+                off = 0
+                for payload, msg, _ in ok:
+                    self.journal.append(int(keys[off]), msg.batch_size, payload)
+                    off += msg.batch_size
                 if self.journal.maybe_flush():
                     self.journal.prune(self.buffer.inserts_total - self.buffer.capacity)
                 if time.monotonic() - self._last_snapshot >= self.rcfg.snapshot_interval_s:
                     self.snapshot()
-        n = msg.batch_size
+        n = int(keys.shape[0])
         self.inserted.add(n)
         return n
+
+    def _spec_mismatch(self, data: dict[str, np.ndarray]) -> str:
+        sig = self._spec_sig
+        if data.keys() != sig.keys():
+            return f"fields {sorted(data)} differ from the replay's {sorted(sig)}"
+        for k, a in data.items():
+            shape, dt = sig[k]
+            if a.shape[1:] != shape or a.dtype != dt:
+                return f"field {k}: {a.dtype.name}{list(a.shape[1:])} differs from the replay's {dt.name}{list(shape)}"
+        return ""
 
     @staticmethod
     def _with_meta(msg: P.TransitionBatch) -> dict[str, np.ndarray]:
