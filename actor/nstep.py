@@ -77,16 +77,18 @@ class NStepBuilder:
             parts.append((data, full, self._q[start, full], np.ones(full.size, bool)))
             self.count[full] = n - 1
 
-        for e in np.flatnonzero(done):
-            c = int(self.count[e])
-            for m in range(c, 0, -1):  # starts j = t-m+1 .. t, with m steps remaining
+        ended = np.flatnonzero(done)
+        if ended.size:
+            counts = self.count[ended]
+            for m in range(int(counts.max()), 0, -1):  # starts with m steps remaining, all ended envs at once
+                envs = ended[counts >= m]
                 start = (self.t - m + 1) % n
                 order = (start + np.arange(m)) % n
-                R = np.array([self._disc[:m] @ self._rew[order, e]])
-                idx = np.array([e])
-                data = self._gather(start, idx, next_obs, R, np.array([m], np.uint8), bool(terminated[e]), bool(truncated[e]))
-                parts.append((data, idx, self._q[start, idx], np.zeros(1, bool)))
-            self.count[e] = 0
+                R = self._disc[:m] @ self._rew[order][:, envs]
+                data = self._gather(start, envs, next_obs, R, np.full(envs.size, m, np.uint8),
+                                    terminated[envs], truncated[envs])
+                parts.append((data, envs, self._q[start, envs], np.zeros(envs.size, bool)))
+            self.count[ended] = 0
         self.t += 1
 
         if not parts:
@@ -99,7 +101,7 @@ class NStepBuilder:
                        np.concatenate([p[3] for p in parts]))
 
     def _gather(self, start: int, envs: np.ndarray, next_obs: dict[str, np.ndarray], R: np.ndarray,
-                m: np.ndarray, terminated: bool, truncated: bool) -> dict[str, np.ndarray]:
+                m: np.ndarray, terminated: bool | np.ndarray, truncated: bool | np.ndarray) -> dict[str, np.ndarray]:
         K = envs.size
         out: dict[str, np.ndarray] = {}
         for k, buf in self._obs.items():
@@ -108,7 +110,7 @@ class NStepBuilder:
         out["reward"] = R.astype(np.float32)
         for k, v in next_obs.items():
             out["next_" + k] = v[envs]
-        out["terminated"] = np.full(K, terminated, bool)
-        out["truncated"] = np.full(K, truncated, bool)
+        out["terminated"] = np.broadcast_to(np.asarray(terminated, bool), (K,)).copy()
+        out["truncated"] = np.broadcast_to(np.asarray(truncated, bool), (K,)).copy()
         out["n"] = m
         return out

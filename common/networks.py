@@ -118,10 +118,13 @@ class ObsEncoder(nn.Module):
             else:
                 encs[name.replace("/", "__")] = MLPEncoder(s.shape)
         self.encoders = nn.ModuleDict(encs)
+        self._keys = [n.replace("/", "__") for n in self.names]
         self.out_dim = sum(e.out_dim for e in self.encoders.values())
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([self.encoders[n.replace("/", "__")](obs[n]) for n in self.names], dim=1)
+        if len(self.names) == 1:
+            return self.encoders[self._keys[0]](obs[self.names[0]])
+        return torch.cat([self.encoders[k](obs[n]) for k, n in zip(self._keys, self.names)], dim=1)
 
 
 _ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
