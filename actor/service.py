@@ -30,6 +30,7 @@ from zenrl.common.errors import ProtocolError, RemoteTimeout
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, num_actions,
                                    obs_spec, to_tensors)
+from zenrl.common.policy_io import wrap_selfplay
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
 
@@ -90,6 +91,8 @@ class ApexActor:
         self.slot = slot
         torch.set_num_threads(acfg.torch_threads)
         self.envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        if cfg.selfplay.enabled:  # frozen learner snapshots join the opponents (common/policy_io.py)
+            self.envs.envs = wrap_selfplay(self.envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         self.spec = obs_spec(self.envs.single_observation_space)
         self.n_actions = num_actions(self.envs.single_action_space)
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast

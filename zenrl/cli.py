@@ -155,6 +155,67 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _json_arg(text: str | None) -> dict:
+    import json
+
+    if not text:
+        return {}
+    try:
+        v = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ZenrlError(f"--env-kwargs is not valid JSON: {e}") from None
+    if not isinstance(v, dict):
+        raise ZenrlError(f"--env-kwargs must be a JSON object, got {text!r}")
+    return v
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from rich.console import Console
+
+    from zenrl import tools
+
+    setup_logging(args.log_level, "evaluate")
+    opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
+    summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
+                             args.workers, args.seed, progress=not args.no_progress)
+    Console(width=None if sys.stdout.isatty() else 120).print(tools.render_table(summary))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(summary, f, indent=1, default=float)
+    brief = {k: v for k, v in summary.items() if k != "results"}
+    tools.print_json_line(brief)
+    return 0
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    from zenrl import tools
+
+    setup_logging(args.log_level, "play")
+    out = tools.play(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.opponent, args.side,
+                     args.seed, args.fps, args.max_steps)
+    tools.print_json_line(out)
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from zenrl import tools
+
+    setup_logging(args.log_level, "plot")
+    w, h = (int(x) for x in args.size.lower().split("x"))
+    tools.print_json_line(tools.plot(args.run_dir, args.out, w, h))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from zenrl import tools
+
+    setup_logging(args.log_level, "export")
+    tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="zenrl", description="Distributed actor-learner RL over Eclipse Zenoh.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -209,6 +270,45 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(s)
     s.add_argument("--list", action="store_true", help="list every option with its description")
     s.set_defaults(func=cmd_config)
+
+    def policy_args(s: argparse.ArgumentParser) -> None:
+        s.add_argument("--checkpoint", required=True, help="a checkpoint file (runs/<id>/checkpoints/ckpt-*.pt)")
+        s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
+        s.add_argument("--env-kwargs", help="JSON object merged over the checkpoint's env.kwargs, e.g. '{\"match_time\": 60}'")
+        s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
+
+    s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates")
+    policy_args(s)
+    s.add_argument("--opponents", default="cheese,teriyaki,clubhouse,waypoint",
+                   help="comma-separated match opponents (ignored for non-match envs)")
+    s.add_argument("--episodes", type=int, default=20, help="episodes per opponent (half red, half blue)")
+    s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
+    s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")
+    s.add_argument("--json", metavar="OUT", help="also write the full results (every episode) as JSON here")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_evaluate)
+
+    s = sub.add_parser("play", help="render one greedy episode to a GIF or MP4")
+    policy_args(s)
+    s.add_argument("--out", required=True, help="output file, .gif (pillow) or .mp4 (imageio-ffmpeg)")
+    s.add_argument("--opponent", help="match opponent (default: drawn from the env's opponents)")
+    s.add_argument("--side", choices=["red", "blue"], help="match side (default: the env's)")
+    s.add_argument("--seed", type=int, default=0, help="episode seed")
+    s.add_argument("--fps", type=float, help="frames per second (default: real time)")
+    s.add_argument("--max-steps", type=int, help="stop after this many steps")
+    s.set_defaults(func=cmd_play)
+
+    s = sub.add_parser("plot", help="learning curves of a run (metrics.jsonl) as a PNG")
+    s.add_argument("run_dir", help="runs/<id> (or a metrics.jsonl file)")
+    s.add_argument("--out", default="curves.png", help="output PNG")
+    s.add_argument("--size", default="1200x800", help="WIDTHxHEIGHT in pixels")
+    s.add_argument("--log-level", default="WARNING")
+    s.set_defaults(func=cmd_plot)
+
+    s = sub.add_parser("export", help="the greedy policy as a TorchScript file (torch.jit.load, no zenrl needed)")
+    policy_args(s)
+    s.add_argument("--out", required=True, help="output .pt file")
+    s.set_defaults(func=cmd_export)
     return p
 
 

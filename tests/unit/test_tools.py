@@ -1,0 +1,260 @@
+"""zenrl evaluate / play / plot / export and the policy loading of common/policy_io.py, on tiny
+checkpoints written here in the learner's format (CartPole and short Burger War matches)."""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from zenrl.cli import main as cli_main
+from zenrl.common.config import RunConfig, SelfPlayConfig
+from zenrl.common.env_factory import make_env
+from zenrl.common.networks import ActorCritic, QNetwork, arch_fingerprint, num_actions, obs_spec
+from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, single_to_flat,
+                                    wrap_selfplay)
+from zenrl.learner.checkpoint import save_checkpoint
+from zenrl import tools
+
+# a match of 3 s + 1 s sudden death at 5 decisions/s: at most 20 steps
+SHORT_MATCH = {"match_time": 3.0, "sudden_death_time": 1.0, "control_hz": 5, "opponents": ["cheese"],
+               "side": "random", "reward": "zero_sum", "render_size": 96}
+BW = "zenrl/BurgerWar-v0"
+
+
+def make_checkpoint(directory: Path, env_id: str, kwargs: dict, algo: str = "apex", seed: int = 0,
+                    step: int = 10) -> Path:
+    """A training state like the learner's, for a tiny randomly initialised network."""
+    cfg = RunConfig.model_validate({"algo": algo, "env": {"id": env_id, "kwargs": kwargs},
+                                    "network": {"hidden": [16]}})
+    env = make_env(cfg.env)
+    spec, n = obs_spec(env.observation_space), num_actions(env.action_space)
+    env.close()
+    torch.manual_seed(seed)
+    if algo == "a3c":
+        net = ActorCritic(spec, n, cfg.network)
+        state = {"format": 1, "algo": "a3c", "arch": arch_fingerprint(net), "version": 1, "updates": step,
+                 "model": net.state_dict(), "optimizer": {}, "config": cfg.model_dump(mode="json")}
+    else:
+        net = QNetwork(spec, n, cfg.network)
+        with torch.no_grad():  # a policy that does not pick one action everywhere
+            for p in net.parameters():
+                p.mul_(3.0)
+        state = {"format": 1, "algo": "apex", "arch": arch_fingerprint(net), "version": 1,
+                 "learner": {"online": net.state_dict(), "target": net.state_dict(), "optimizer": {}, "updates": step},
+                 "config": cfg.model_dump(mode="json")}
+    return save_checkpoint(directory, state, step, keep=100)
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ckpts")
+    return {"cartpole": make_checkpoint(d / "cp", "CartPole-v1", {}),
+            "match": make_checkpoint(d / "bw", BW, SHORT_MATCH),
+            "image": make_checkpoint(d / "img", "zenrl/BurgerWarImage-v0", {**SHORT_MATCH, "image_size": 32}),
+            "a3c": make_checkpoint(d / "a3c", "CartPole-v1", {}, algo="a3c")}
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
+    assert data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+# --------------------------------------------------------------------------------------------
+def test_statistics():
+    lo, hi = tools.wilson(9, 10)
+    assert abs(lo - 0.5958) < 1e-3 and abs(hi - 0.9821) < 1e-3  # Wilson 95% for 9/10
+    assert tools.wilson(0, 0) == (0.0, 1.0)
+    m, lo, hi = tools.mean_ci([1.0, 2.0, 3.0])
+    assert m == 2.0 and abs((hi - m) - 4.303 / np.sqrt(3)) < 1e-9
+    assert abs(tools.t975(60) - 2.000) < 0.003
+
+
+def test_evaluate_cartpole_cli_json(ckpts, tmp_path, capsys):
+    out = tmp_path / "ev.json"
+    rc = cli_main(["evaluate", "--checkpoint", str(ckpts["cartpole"]), "--episodes", "3", "--workers", "1",
+                   "--no-progress", "--json", str(out)])
+    assert rc == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["kind"] == "return" and last["episodes"] == 3 and "results" not in last
+    full = json.loads(out.read_text())
+    assert len(full["results"]) == 3
+    assert full["rows"][0]["return_mean"] == pytest.approx(np.mean([r["ret"] for r in full["results"]]))
+
+
+def test_evaluate_match_counts_sides_and_parallel_equals_serial(ckpts):
+    kw = dict(opponents=["cheese", "teriyaki"], episodes=2, seed=5, progress=False)
+    serial = tools.evaluate(str(ckpts["match"]), **kw, workers=1)
+    parallel = tools.evaluate(str(ckpts["match"]), **kw, workers=2)
+    assert serial["kind"] == "match" and serial["episodes"] == 4
+    assert [r["opponent"] for r in serial["rows"]] == ["cheese", "teriyaki"]
+    for row in serial["rows"]:
+        assert row["episodes"] == 2 and row["wins"] + row["draws"] + row["losses"] == 2
+        assert row["by_side"]["red"]["episodes"] == 1 and row["by_side"]["blue"]["episodes"] == 1
+        lo, hi = row["win_rate_ci95"]
+        assert 0.0 <= lo <= row["win_rate"] <= hi <= 1.0
+    assert {r["side"] for r in serial["results"]} == {"red", "blue"}
+    key = [(r["opponent"], r["side"], r["outcome"], r["my_score"], r["enemy_score"], r["length"]) for r in serial["results"]]
+    assert key == [(r["opponent"], r["side"], r["outcome"], r["my_score"], r["enemy_score"], r["length"])
+                   for r in parallel["results"]]
+    assert serial["total"]["episodes"] == 4
+
+
+# --------------------------------------------------------------------------------------------
+def test_play_match_gif(ckpts, tmp_path):
+    PIL = pytest.importorskip("PIL.Image")
+    out = tmp_path / "match.gif"
+    res = tools.play(str(ckpts["match"]), str(out), opponent="teriyaki", side="blue", seed=3)
+    assert res["opponent"] == "teriyaki" and res["side"] == "blue"
+    with PIL.open(out) as im:
+        assert im.size == (96, 96)
+        assert im.n_frames == res["frames"] == res["steps"] + 1 >= 2
+
+
+def test_play_cartpole_gif_cli(ckpts, tmp_path, capsys):
+    PIL = pytest.importorskip("PIL.Image")
+    pytest.importorskip("pygame")
+    out = tmp_path / "cp.gif"
+    assert cli_main(["play", "--checkpoint", str(ckpts["cartpole"]), "--out", str(out), "--max-steps", "5"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    with PIL.open(out) as im:
+        assert im.size == (600, 400)
+        assert im.n_frames == res["frames"] == res["steps"] + 1
+    assert cli_main(["play", "--checkpoint", str(ckpts["cartpole"]), "--out", str(tmp_path / "x.avi")]) == 2
+
+
+# --------------------------------------------------------------------------------------------
+def test_plot_png(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    run = tmp_path / "run-1"
+    run.mkdir()
+    with open(run / "metrics.jsonl", "w") as f:
+        for i in range(20):
+            f.write(json.dumps({"time": 1000.0 + 6 * i, "source": "learner", "step": 10 * i, "loss": 1.0 / (i + 1),
+                                "q_mean": 0.1 * i, "updates_per_s": 30.0, "samples_per_s": 3840.0}) + "\n")
+            if i % 5 == 0:
+                f.write(json.dumps({"time": 1000.0 + 6 * i, "source": "eval", "step": 10 * i,
+                                    "return_mean": float(i), "return_std": 1.0}) + "\n")
+        f.write('{"time": 1200.0, "source": "lear')  # torn last line of a live run
+    out = tmp_path / "curves.png"
+    assert cli_main(["plot", str(run), "--out", str(out), "--size", "640x480"]) == 0
+    assert png_size(out) == (640, 480)
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "eval return" in res["panels"] and "learner loss" in res["panels"]
+
+
+# --------------------------------------------------------------------------------------------
+def _observations(env: gym.Env, n: int, seed: int) -> list:
+    """Real observations of a few random steps plus samples of the observation space."""
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    rng = np.random.default_rng(seed)
+    while len(out) < n // 2:
+        obs, _, te, tr, _ = env.step(int(rng.integers(env.action_space.n)))
+        out.append(obs)
+        if te or tr:
+            obs, _ = env.reset()
+    space = env.observation_space
+    subs = space.spaces.values() if isinstance(space, gym.spaces.Dict) else [space]
+    if all(np.isfinite(s.low).all() and np.isfinite(s.high).all() for s in subs):
+        space.seed(seed)
+        out += [space.sample() for _ in range(n - len(out))]
+    else:  # unbounded (CartPole): real observations with noise
+        out += [rng.normal(0, 2.0, space.shape).astype(np.float32) for _ in range(n - len(out))]
+    return out
+
+
+def _as_tensors(obs):
+    if isinstance(obs, dict):
+        return {k: torch.as_tensor(np.asarray(v)) for k, v in obs.items()}
+    return torch.as_tensor(np.asarray(obs))
+
+
+@pytest.mark.parametrize("which", ["cartpole", "match", "image", "a3c"])
+def test_export_matches_greedy_actions(ckpts, tmp_path, which):
+    ckpt = ckpts[which]
+    out = tmp_path / "policy.pt"
+    meta = tools.export(str(ckpt), str(out))
+    state = read_checkpoint(ckpt)
+    env = make_env(tools.env_config_for(tools.checkpoint_config(state)))
+    policy = load_policy(ckpt, env.observation_space, env.action_space)
+    with warnings.catch_warnings():  # torch 2.13 deprecates TorchScript (it still loads)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        ts = torch.jit.load(str(out))
+    observations = _observations(env, 24, seed=1)
+    env.close()
+    mine = [int(ts(_as_tensors(o))) for o in observations]
+    ref = [int(policy.batch(single_to_flat(o))[0]) for o in observations]
+    assert mine == ref
+    if which in ("match", "image"):
+        assert len(set(ref)) > 1  # the comparison is not trivially constant
+    extra = {"zenrl.json": ""}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.jit.load(str(out), _extra_files=extra)
+    assert json.loads(extra["zenrl.json"])["n_actions"] == meta["n_actions"]
+
+
+def test_exported_policy_loads_without_zenrl(ckpts, tmp_path):
+    out = tmp_path / "policy.pt"
+    tools.export(str(ckpts["match"]), str(out))
+    code = ("import sys; sys.modules['zenrl'] = None\n"
+            "import torch\n"
+            f"p = torch.jit.load({str(out)!r})\n"
+            "obs = {'lidar': torch.full((360,), 1.0), 'pose': torch.tensor([0.0, -1.3, 0.0, 1.0]),\n"
+            "       'mask': torch.ones(18), 'game': torch.zeros(4)}\n"
+            "a = int(p(obs)); assert 0 <= a < 5; print(a)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+# --------------------------------------------------------------------------------------------
+def test_selfplay_wrapper_plays_snapshots(ckpts, tmp_path):
+    cfg = RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}, "runs_dir": str(tmp_path),
+                                    "selfplay": {"enabled": True, "snapshot_prob": 1.0, "snapshot_interval_s": 1e-3}})
+    envs = [make_env(cfg.env) for _ in range(2)]
+    wrapped = wrap_selfplay(envs, cfg, "sp", seed=0)
+    try:
+        _, info = wrapped[0].reset(seed=0)
+        assert info["opponent"] == "cheese"  # no snapshot yet: scripted only
+        make_checkpoint(tmp_path / "sp" / "checkpoints", BW, SHORT_MATCH, step=42)
+        league = wrapped[0].league
+        assert wrapped[1].league is league
+        for w in wrapped:
+            _, info = w.reset(seed=1)
+            assert info["opponent"] == "policy"
+            done = False
+            while not done:
+                _, _, te, tr, info = w.step(0)
+                done = te or tr
+        assert [name for name, _ in league.snapshots] == ["ckpt-000000000042.pt"]
+        _, info = wrapped[0].reset(seed=2, options={"opponent": "cheese"})  # explicit choice wins
+        assert info["opponent"] == "cheese"
+    finally:
+        for w in wrapped:
+            w.close()
+
+
+def test_league_keeps_newest_snapshots_and_skips_bad_files(ckpts, tmp_path):
+    env = make_env(RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}}).env)
+    league = SnapshotLeague(SelfPlayConfig(enabled=True, max_snapshots=2, snapshot_interval_s=1.0), tmp_path,
+                            env.observation_space, env.action_space)
+    assert not league.refresh(now=0.0) and league.sample() is None
+    (tmp_path / "ckpt-000000000001.pt").write_bytes(b"not a checkpoint")
+    assert not league.refresh(now=2.0)
+    for i, step in enumerate((5, 6, 7)):
+        make_checkpoint(tmp_path, BW, SHORT_MATCH, step=step)
+        assert not league.refresh(now=2.5 + 2 * i)  # interval not over yet
+        assert league.refresh(now=4.0 + 2 * i)
+    assert [n for n, _ in league.snapshots] == ["ckpt-000000000006.pt", "ckpt-000000000007.pt"]
+    env.close()
