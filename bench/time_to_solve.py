@@ -1,0 +1,227 @@
+"""Wall-clock time to solve CartPole-v1 (greedy eval mean >= 475 over 10 episodes): zenrl vs
+Stable-Baselines3, on the same machine, in the same run, seeds interleaved (zenrl seed 0,
+SB3 seed 0, zenrl seed 1, ...) so that machine noise hits both alike.
+
+* zenrl: ``zenrl run --config configs/cartpole_<algo>.yaml --seed S`` as a subprocess with
+  ``target_return=475``; the figures come from ``runs/<id>/summary.json``:
+  ``solve_s_since_first_step`` (the launcher's clock starts at the first env step an actor
+  reports; its evaluator runs in its own process, concurrently) and ``startup_s``.
+* SB3: in this process, the rl-baselines3-zoo CartPole-v1 hyper-parameters (below):
+  apex is compared with SB3 DQN, a3c with SB3 A2C (8 envs). The clock starts at the first
+  env step (first rollout) and is paused while evaluating: every ``--sb3-eval-every`` env steps
+  a callback plays 10 greedy (``deterministic=True``) episodes on separate seeds (the same
+  seed scheme as zenrl's evaluator: seed + 1,000,000 + 10 * round + i).
+
+Reported (the last stdout line is one JSON object; progress goes to stderr):
+  ``median_ratio_vs_sb3`` (apex) / ``median_ratio_vs_sb3_a2c`` (a3c): median zenrl solve time /
+  median SB3 solve time (an unsolved seed counts as infinitely slow; null if a median is
+  infinite). ``startup_s``: median zenrl start-up (launch -> first env step).
+  ``throughput_ratio_vs_sb3_a2c`` (a3c): median env steps/s of zenrl A3C (2 workers, over the
+  run up to its last eval) / median env steps/s of SB3 A2C (clock excluding evaluation).
+
+    python bench/time_to_solve.py --algo a3c             # 3 seeds each (minutes)
+    python bench/time_to_solve.py --algo apex --quick    # 1 seed each, capped time
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+TARGET = 475.0
+EVAL_EPISODES = 10
+EVAL_SEED_OFFSET = 1_000_000
+
+# rl-baselines3-zoo, hyperparams/dqn.yml and a2c.yml, CartPole-v1 (values, not code).
+ZOO_DQN = {"n_timesteps": 50_000, "policy": "MlpPolicy", "learning_rate": 2.3e-3, "batch_size": 64,
+           "buffer_size": 100_000, "learning_starts": 1000, "gamma": 0.99, "target_update_interval": 10,
+           "train_freq": 256, "gradient_steps": 128, "exploration_fraction": 0.16,
+           "exploration_final_eps": 0.04, "policy_kwargs": {"net_arch": [256, 256]}}
+ZOO_A2C = {"n_timesteps": 500_000, "policy": "MlpPolicy", "n_envs": 8, "ent_coef": 0.0}
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def median_or_inf(xs: list[float | None]) -> float:
+    return statistics.median([float("inf") if x is None else x for x in xs]) if xs else float("inf")
+
+
+def finite(x: float) -> float | None:
+    return None if x == float("inf") else round(x, 3)
+
+
+# --------------------------------------------------------------------------------------------
+def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path) -> dict[str, Any]:
+    run_id = f"tts-{algo}-s{seed}-{os.getpid()}"
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(ROOT / "configs" / f"cartpole_{algo}.yaml"),
+           "--seed", str(seed), "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
+           "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={TARGET}",
+           "--set", f"max_wall_s={cap_s}"]
+    t0 = time.monotonic()
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=cap_s + 300)
+    s = json.loads((runs_dir / run_id / "summary.json").read_text())
+    evals = s.get("evals") or []
+    last = next((e for e in reversed(evals) if e.get("since_first_step")), None)
+    sps = last["env_steps"] / last["since_first_step"] if last and last["since_first_step"] > 0 else None
+    out = {"seed": seed, "solved": bool(s["solved"]), "solve_s": s["solve_s_since_first_step"],
+           "startup_s": s["startup_s"], "env_steps": s["env_steps"], "env_steps_per_s": sps,
+           "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),
+           "returncode": p.returncode, "process_s": time.monotonic() - t0}
+    log(f"zenrl {algo} seed {seed}: {json.dumps(out)}")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -> dict[str, Any]:
+    import gymnasium as gym
+    import numpy as np
+    import torch
+    from stable_baselines3 import A2C, DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
+
+    torch.set_num_threads(threads)
+
+    class SolveClock(BaseCallback):
+        """Clock from the first env step, paused while evaluating; stops at the target."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.t_start: float | None = None
+            self.paused = 0.0
+            self.next_eval = eval_every
+            self.rounds = 0
+            self.solve_s: float | None = None
+            self.evals: list[tuple[int, float, float]] = []
+            self.eval_env = gym.make("CartPole-v1")
+
+        def clock(self) -> float:
+            return 0.0 if self.t_start is None else time.perf_counter() - self.t_start - self.paused
+
+        def _on_rollout_start(self) -> None:
+            if self.t_start is None:
+                self.t_start = time.perf_counter()
+
+        def _evaluate(self) -> float:
+            rets = []
+            for i in range(EVAL_EPISODES):
+                obs, _ = self.eval_env.reset(seed=seed + EVAL_SEED_OFFSET + EVAL_EPISODES * self.rounds + i)
+                done, ret = False, 0.0
+                while not done:
+                    a, _ = self.model.predict(obs, deterministic=True)
+                    obs, r, term, trunc, _ = self.eval_env.step(int(a))
+                    ret += float(r)
+                    done = term or trunc
+                rets.append(ret)
+            self.rounds += 1
+            return float(np.mean(rets))
+
+        def _on_step(self) -> bool:
+            if self.t_start is None:
+                self.t_start = time.perf_counter()
+            if self.num_timesteps >= self.next_eval:
+                self.next_eval += eval_every
+                t0 = time.perf_counter()
+                m = self._evaluate()
+                self.paused += time.perf_counter() - t0
+                self.evals.append((self.num_timesteps, round(self.clock(), 2), m))
+                if m >= TARGET:
+                    self.solve_s = self.clock()
+                    return False
+            return self.clock() < cap_s
+
+    cb = SolveClock()
+    if algo == "apex":
+        hp = {k: v for k, v in ZOO_DQN.items() if k not in ("n_timesteps", "policy")}
+        env = gym.make("CartPole-v1")
+        model = DQN(ZOO_DQN["policy"], env, seed=seed, device="cpu", verbose=0, **hp)
+        total = ZOO_DQN["n_timesteps"]
+    else:
+        env = make_vec_env("CartPole-v1", n_envs=ZOO_A2C["n_envs"], seed=seed)
+        model = A2C(ZOO_A2C["policy"], env, seed=seed, device="cpu", verbose=0, ent_coef=ZOO_A2C["ent_coef"])
+        total = ZOO_A2C["n_timesteps"]
+    model.learn(total_timesteps=total, callback=cb)
+    clock = cb.clock()
+    out = {"seed": seed, "solved": cb.solve_s is not None, "solve_s": cb.solve_s, "env_steps": int(model.num_timesteps),
+           "env_steps_per_s": model.num_timesteps / clock if clock > 0 else None, "train_s": clock,
+           "eval_rounds": cb.rounds, "last_eval": cb.evals[-1][2] if cb.evals else None}
+    log(f"sb3 {'DQN' if algo == 'apex' else 'A2C'} seed {seed}: {json.dumps(out)}")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--algo", choices=["apex", "a3c"], default="apex")
+    ap.add_argument("--seeds", type=int, default=3, help="seeds per system (>= 3 for a real comparison)")
+    ap.add_argument("--quick", action="store_true", help="1 seed each and --cap-s 240")
+    ap.add_argument("--cap-s", type=float, default=900.0, help="wall-clock cap per run (unsolved after it)")
+    ap.add_argument("--sb3-eval-every", type=int, default=None,
+                    help="SB3 env steps between evaluations (default: 1000 for DQN, 4000 for A2C)")
+    ap.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (zenrl uses 1 per process)")
+    ap.add_argument("--skip-sb3", action="store_true", help="only zenrl")
+    args = ap.parse_args()
+    seeds = 1 if args.quick else args.seeds
+    cap = min(args.cap_s, 240.0) if args.quick else args.cap_s
+    eval_every = args.sb3_eval_every or (1000 if args.algo == "apex" else 4000)
+    zen, sb3 = [], []
+    with tempfile.TemporaryDirectory(prefix="zenrl-tts-") as tmp:
+        for s in range(seeds):
+            zen.append(run_zenrl(args.algo, s, cap, Path(tmp)))
+            if not args.skip_sb3:
+                try:
+                    sb3.append(run_sb3(args.algo, s, cap, eval_every, args.sb3_threads))
+                except ImportError as e:
+                    log(f"stable-baselines3 is not installed ({e}); pip install stable-baselines3")
+                    args.skip_sb3 = True
+    z_med = median_or_inf([r["solve_s"] for r in zen])
+    s_med = median_or_inf([r["solve_s"] for r in sb3]) if sb3 else float("inf")
+    ratio = z_med / s_med if z_med != float("inf") and s_med not in (0.0, float("inf")) else None
+    startups = [r["startup_s"] for r in zen if r["startup_s"] is not None]
+    result: dict[str, Any] = {
+        "bench": "time_to_solve", "env": "CartPole-v1", "algo": args.algo, "target_return": TARGET,
+        "eval_episodes": EVAL_EPISODES, "seeds": seeds, "quick": args.quick, "cap_s": cap,
+        "zenrl": {"config": f"configs/cartpole_{args.algo}.yaml", "median_solve_s": finite(z_med), "runs": zen},
+        "sb3": {"algo": "DQN" if args.algo == "apex" else "A2C",
+                "zoo_hyperparameters": ZOO_DQN if args.algo == "apex" else ZOO_A2C,
+                "eval_every_steps": eval_every, "torch_threads": args.sb3_threads,
+                "median_solve_s": finite(s_med), "runs": sb3} if sb3 else None,
+        "startup_s": round(statistics.median(startups), 3) if startups else None,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+    }
+    if args.algo == "apex":
+        result["median_ratio_vs_sb3"] = None if ratio is None else round(ratio, 3)
+    else:
+        result["median_ratio_vs_sb3_a2c"] = None if ratio is None else round(ratio, 3)
+        z_sps = [r["env_steps_per_s"] for r in zen if r["env_steps_per_s"]]
+        s_sps = [r["env_steps_per_s"] for r in sb3 if r["env_steps_per_s"]]
+        result["zenrl"]["median_env_steps_per_s"] = round(statistics.median(z_sps), 1) if z_sps else None
+        if result["sb3"] is not None:
+            result["sb3"]["median_env_steps_per_s"] = round(statistics.median(s_sps), 1) if s_sps else None
+        result["throughput_ratio_vs_sb3_a2c"] = (round(statistics.median(z_sps) / statistics.median(s_sps), 3)
+                                                 if z_sps and s_sps else None)
+    print(json.dumps(result, default=float))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,312 @@
+"""A3C learner (``zenrl learner`` with ``algo: a3c``): the parameter server of asynchronous
+advantage actor-critic.
+
+Workers (:mod:`zenrl.actor.a3c`) publish :class:`~zenrl.common.protocol.Gradients` on
+``gradients/<worker>``. The Zenoh callback only enqueues the payload in a bounded queue (a full
+queue drops and counts, so the sender is never stalled); the main loop decodes, validates and
+applies each gradient as it arrives with one shared optimizer (RMSProp by default for A3C, as in
+the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the parameters every
+``a3c.broadcast_every`` applications with a strictly increasing ``version`` (low priority, on the
+``weights`` key; ``learner/weights`` queries get the latest).
+
+Which gradients are applied (:class:`GradientApplier`, pure, unit-tested):
+
+* names and shapes must match the model's parameters (else rejected, counted by reason);
+* NaN/Inf never get this far (rejected when decoded); a gradient whose norm overflows is
+  rejected; if the parameters ever became non-finite after a step they are restored from the
+  last broadcast and the optimizer state is reset;
+* a gradient taken at params ``version`` v is dropped (``stale_dropped``) if the current version
+  is more than ``a3c.max_staleness`` ahead of v, and dropped (``unknown_version_dropped``) if v is
+  newer than the current version. The latter only happens after a learner restart from a
+  checkpoint older than the params the workers hold; the learner then jumps its version past the
+  claimed one (and past the staleness window) so that its next broadcast is taken by the workers
+  again instead of being ignored as old.
+
+The queue holds at most ``(max_staleness + 1) * broadcast_every + num_actors`` gradients: any
+gradient further back would be stale by the time it is applied anyway.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from zenrl.common import protocol as P
+from zenrl.common.config import A3CConfig, LearnerConfig, RunConfig
+from zenrl.common.errors import ProtocolError
+from zenrl.common.metrics import MetricsWriter, RateMeter, RejectCounter
+from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays, resolve_device
+from zenrl.common.transport import Node
+from zenrl.learner.checkpoint import checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
+from zenrl.learner.service import BackgroundSender, check_resume_compatible, env_shapes
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = 1
+#: Largest version a worker may claim before the learner resyncs to it (keeps versions far from
+#: the uint64 limit of the wire format whatever a faulty worker sends).
+MAX_RESYNC_VERSION = 1 << 53
+
+APPLIED = "applied"
+STALE = "stale"
+UNKNOWN_VERSION = "unknown_version"
+
+
+def make_optimizer(params: Any, lcfg: LearnerConfig, acfg: A3CConfig) -> torch.optim.Optimizer:
+    """``learner.optimizer``: rmsprop (non-centered, ``a3c.rmsprop_alpha``/``rmsprop_eps``, as in
+    A3C) or adam (``learner.adam_eps``), both at ``learner.lr``."""
+    if lcfg.optimizer == "rmsprop":
+        return torch.optim.RMSprop(params, lr=lcfg.lr, alpha=acfg.rmsprop_alpha, eps=acfg.rmsprop_eps)
+    return torch.optim.Adam(params, lr=lcfg.lr, eps=lcfg.adam_eps)
+
+
+class GradientApplier:
+    """The shared model and optimizer; applies workers' gradients (no I/O).
+
+    ``version`` is the version of the params last broadcast (0 before the first
+    :meth:`next_version`); ``updates`` counts applied gradients.
+    """
+
+    def __init__(self, net: torch.nn.Module, lcfg: LearnerConfig, acfg: A3CConfig) -> None:
+        self.net = net
+        self.lcfg, self.acfg = lcfg, acfg
+        self.params = dict(net.named_parameters())
+        self.opt = make_optimizer(self.params.values(), lcfg, acfg)
+        self.version = 0
+        self.updates = 0
+        self.restored = 0
+        self._good = [p.detach().clone() for p in self.params.values()]
+
+    def check(self, msg: P.Gradients) -> None:
+        """Raise :class:`ProtocolError` if ``msg.grads`` does not match the parameters."""
+        got, want = set(msg.grads), set(self.params)
+        if got != want:
+            raise ProtocolError("grads", f"parameter names differ: missing {sorted(want - got)[:3]}, "
+                                         f"unexpected {sorted(got - want)[:3]}", "names")
+        for k, p in self.params.items():
+            if tuple(msg.grads[k].shape) != tuple(p.shape):
+                raise ProtocolError(f"grads.{k}", f"shape {list(msg.grads[k].shape)}, expected {list(p.shape)}", "shape")
+
+    def apply(self, msg: P.Gradients) -> tuple[str, float]:
+        """Validate and apply one gradient. Returns (outcome, gradient norm before clipping):
+        outcome :data:`APPLIED`, :data:`STALE` or :data:`UNKNOWN_VERSION`; a malformed gradient
+        raises :class:`ProtocolError` (reason ``names``, ``shape`` or ``nonfinite``)."""
+        self.check(msg)
+        if msg.version > self.version:
+            return UNKNOWN_VERSION, 0.0
+        if self.version - msg.version > self.acfg.max_staleness:
+            return STALE, 0.0
+        dev = next(iter(self.params.values())).device
+        for k, p in self.params.items():
+            g = msg.grads[k]
+            p.grad = torch.from_numpy(np.array(g, np.float32)).to(dev)
+        norm = float(torch.nn.utils.clip_grad_norm_(list(self.params.values()), self.lcfg.grad_clip))
+        if not np.isfinite(norm):
+            self.opt.zero_grad(set_to_none=True)
+            raise ProtocolError("grads", f"gradient norm is {norm} (overflow)", "nonfinite")
+        self.opt.step()
+        self.opt.zero_grad(set_to_none=True)
+        self.updates += 1
+        if not self.params_finite():
+            self._restore_good()
+        return APPLIED, norm
+
+    def params_finite(self) -> bool:
+        return all(bool(torch.isfinite(p).all()) for p in self.params.values())
+
+    def _restore_good(self) -> None:
+        log.error("parameters became non-finite after update %d; restoring the params of version %d "
+                  "and resetting the optimizer state", self.updates, self.version)
+        with torch.no_grad():
+            for p, g in zip(self.params.values(), self._good):
+                p.copy_(g)
+        self.opt.state.clear()
+        self.restored += 1
+
+    def next_version(self) -> int:
+        """Mark the current params as a new version (to be broadcast); returns it."""
+        self.version += 1
+        self._good = [p.detach().clone() for p in self.params.values()]
+        return self.version
+
+    def resync(self, claimed: int) -> bool:
+        """A worker holds params of version ``claimed`` > ours (we restarted from an older
+        checkpoint): jump past it and its staleness window. Returns whether the version moved."""
+        if claimed <= self.version or claimed > MAX_RESYNC_VERSION:
+            return False
+        self.version = claimed + self.acfg.max_staleness
+        return True
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
+                "version": self.version, "updates": self.updates}
+
+    def load_state_dict(self, s: Mapping[str, Any]) -> None:
+        self.net.load_state_dict(s["model"])
+        self.opt.load_state_dict(s["optimizer"])
+        self.version, self.updates = int(s["version"]), int(s["updates"])
+        self._good = [p.detach().clone() for p in self.params.values()]
+
+
+class A3CLearnerService:
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
+        self.cfg = cfg
+        self.node = node
+        self.keys = P.Keys(run_id)
+        self.id = learner_id
+        self.run_dir = Path(cfg.runs_dir) / run_id
+        self.ckpt_dir = checkpoint_dir(cfg.runs_dir, run_id)
+        torch.set_num_threads(cfg.learner.torch_threads)
+        self.device = resolve_device(cfg.learner.device)
+        spec, n_actions = env_shapes(cfg)
+        torch.manual_seed(cfg.seed)
+        self.net = ActorCritic(spec, n_actions, cfg.network).to(self.device)
+        self.arch = arch_fingerprint(self.net)
+        self.applier = GradientApplier(self.net, cfg.learner, cfg.a3c)
+        self.env_steps_trained = 0
+        a = cfg.a3c
+        self._q: queue.Queue[tuple[str, bytes]] = queue.Queue(
+            maxsize=(a.max_staleness + 1) * a.broadcast_every + cfg.actor.num_actors)
+        self.queue_dropped = 0
+        self.stale_dropped = 0
+        self.unknown_version_dropped = 0
+        self.rejects = RejectCounter(log, "gradients")
+        self._norm_sum = self._lag_sum = 0.0  # since the last stats message
+        self._n_applied = 0
+        self._resync_pending = False
+        self._latest_weights: bytes | None = None
+        if resume == "require" or (resume == "auto" and list_checkpoints(self.ckpt_dir)):
+            self._restore()
+
+    # -- state -------------------------------------------------------------------------------
+    def training_state(self) -> dict[str, Any]:
+        s = self.applier.state_dict()
+        return {"format": CHECKPOINT_FORMAT, "algo": "a3c", "arch": self.arch, "version": s["version"],
+                "updates": s["updates"], "model": s["model"], "optimizer": s["optimizer"],
+                "env_steps_trained": self.env_steps_trained, "torch_rng": torch.get_rng_state(),
+                "config": self.cfg.model_dump(mode="json"), "saved_at": time.time()}
+
+    def _restore(self) -> None:
+        state, path = load_latest(self.ckpt_dir)
+        check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
+        self.applier.load_state_dict(state)
+        self.env_steps_trained = int(state.get("env_steps_trained", 0))
+        torch.set_rng_state(state["torch_rng"])
+        log.info("resumed from %s: %d updates, params version %d", path, self.applier.updates, self.applier.version)
+
+    def save(self) -> Path:
+        p = save_checkpoint(self.ckpt_dir, self.training_state(), self.applier.updates, self.cfg.learner.keep_checkpoints)
+        log.info("checkpoint %s", p)
+        return p
+
+    # -- network -----------------------------------------------------------------------------
+    def _on_gradients(self, key: str, payload: bytes) -> None:
+        """Zenoh callback: enqueue only; never blocks the sender."""
+        try:
+            self._q.put_nowait((key, payload))
+        except queue.Full:
+            self.queue_dropped += 1
+
+    def _encode_weights(self) -> bytes:
+        version = self.applier.next_version()
+        return P.Weights(version=version, learner_id=self.id, arch=self.arch, updates=self.applier.updates,
+                         params=params_to_arrays(self.net)).encode(self.cfg.transport.max_message_bytes)
+
+    # -- main loop ---------------------------------------------------------------------------
+    def handle(self, key: str, payload: bytes) -> str | None:
+        """Decode and apply one gradient message; returns the outcome (None if rejected)."""
+        try:
+            msg = P.Gradients.decode(payload, self.cfg.transport.max_message_bytes)
+            outcome, norm = self.applier.apply(msg)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), key.rsplit("/", 1)[-1])
+            return None
+        if outcome == STALE:
+            self.stale_dropped += 1
+        elif outcome == UNKNOWN_VERSION:
+            self.unknown_version_dropped += 1
+            if self.applier.resync(msg.version):
+                log.warning("%s sent gradients of params version %d, newer than ours; resyncing the version "
+                            "(learner restarted from an older checkpoint?)", msg.worker_id, msg.version)
+                self._resync_pending = True
+        else:
+            self.env_steps_trained += msg.steps
+            self._norm_sum += norm
+            self._lag_sum += self.applier.version - msg.version
+            self._n_applied += 1
+        return outcome
+
+    def run(self, stop: threading.Event) -> None:
+        cfg = self.cfg.learner
+        metrics = MetricsWriter(self.run_dir)
+        sender = BackgroundSender()
+        w_pub = self.node.publisher(self.keys.weights, low_priority=True)
+        stats_pub = self.node.publisher(self.keys.stats("learner", self.id))
+        self.node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
+        self.node.subscribe(self.keys.gradients_all, self._on_gradients)
+        self.node.token(self.keys.alive("learner", self.id))
+        self._latest_weights = self._encode_weights()
+        w_pub.put(self._latest_weights)
+        log.info("a3c learner: params version %d, %d updates so far, optimizer %s lr %g",
+                 self.applier.version, self.applier.updates, cfg.optimizer, cfg.lr)
+        upd_rate, step_rate = RateMeter(), RateMeter()
+        every = self.cfg.a3c.broadcast_every
+        last_log = last_ckpt = time.monotonic()
+        try:
+            while not stop.is_set():
+                if self.cfg.max_updates is not None and self.applier.updates >= self.cfg.max_updates:
+                    stop.wait(0.5)  # the launcher stops the run once it sees the final count
+                    item = None
+                else:
+                    try:
+                        item = self._q.get(timeout=0.5)
+                    except queue.Empty:
+                        item = None
+                if item is not None:
+                    before = self.env_steps_trained
+                    if self.handle(*item) == APPLIED:
+                        upd_rate.add(1)
+                        step_rate.add(self.env_steps_trained - before)
+                        if self.applier.updates % every == 0:
+                            self._latest_weights = self._encode_weights()
+                            sender.send(w_pub, self._latest_weights)
+                    elif self._resync_pending:
+                        self._resync_pending = False
+                        self._latest_weights = self._encode_weights()
+                        sender.send(w_pub, self._latest_weights)
+                now = time.monotonic()
+                if now - last_log >= cfg.log_interval_s:
+                    n = max(self._n_applied, 1)
+                    vals: dict[str, Any] = {
+                        "updates": self.applier.updates, "version": self.applier.version,
+                        "updates_per_s": upd_rate.rate(), "env_steps_per_s": step_rate.rate(),
+                        "env_steps_trained": self.env_steps_trained, "grad_norm": self._norm_sum / n,
+                        "policy_lag": self._lag_sum / n, "stale_dropped": self.stale_dropped,
+                        "unknown_version_dropped": self.unknown_version_dropped,
+                        "queue_dropped": self.queue_dropped, "queue_len": self._q.qsize(),
+                        "params_restored": self.applier.restored, "send_dropped": sender.dropped}
+                    vals.update(self.rejects.as_values())
+                    stats_pub.put(P.Stats(role="learner", id=self.id, time=time.time(), values=vals).encode())
+                    metrics.write("learner", self.applier.updates, vals)
+                    if self._n_applied:
+                        log.info("updates %d v%d %.1f upd/s %.0f steps/s lag %.2f |g| %.3f stale %d rejected %d",
+                                 self.applier.updates, self.applier.version, vals["updates_per_s"],
+                                 vals["env_steps_per_s"], vals["policy_lag"], vals["grad_norm"],
+                                 self.stale_dropped, self.rejects.total)
+                    self._norm_sum = self._lag_sum = 0.0
+                    self._n_applied = 0
+                    last_log = now
+                if now - last_ckpt >= cfg.checkpoint_interval_s:
+                    self.save()
+                    last_ckpt = now
+        finally:
+            self.save()
+            sender.close()
+            metrics.close()

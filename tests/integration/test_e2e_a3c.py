@@ -1,0 +1,55 @@
+"""A3C end to end: `zenrl run --config configs/cartpole_a3c.yaml` starts a router, the A3C
+learner (parameter server), 2 workers and the evaluator as OS processes; with an update budget,
+the greedy eval return must rise clearly above a random policy's (~22 on CartPole-v1), the
+learner must have rejected nothing, its checkpoint must hold finite params, and nothing may be
+left running."""
+
+import json
+import subprocess
+import sys
+import uuid
+
+import pytest
+import torch
+
+from tests.conftest import ROOT, free_port
+
+pytestmark = pytest.mark.integration
+
+RANDOM_CARTPOLE_RETURN = 22.0
+
+
+def _leftovers(run_id: str) -> list[str]:
+    out = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
+    return [line for line in out.splitlines() if run_id in line and "ps -eo" not in line]
+
+
+def test_zenrl_run_a3c_learns_cartpole(tmp_path):
+    run_id = f"e2e-a3c-{uuid.uuid4().hex[:8]}"  # unique: another test session may run beside this one
+    port = free_port()
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_a3c.yaml", "--run-id", run_id,
+           "--no-progress", "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[tcp/127.0.0.1:{port}]",
+           "--set", "max_updates=2000", "--set", "max_wall_s=600", "--set", "target_return=null",
+           "--set", "evaluator.interval_s=3"]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
+    run_dir = tmp_path / run_id
+    logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
+    assert p.returncode == 0, (p.stderr[-3000:], logs)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]
+    evals = [e["mean"] for e in summary["evals"]]
+    assert evals, logs.get("evaluator.log")
+    assert max(evals) >= 5 * RANDOM_CARTPOLE_RETURN, (evals, logs.get("learner.log"))
+    learner = summary["learner"]
+    assert learner["updates"] >= 2000 and learner["version"] > 1
+    assert learner["rejected_total"] == 0 and learner["params_restored"] == 0, learner
+    assert summary["env_steps"] > 0
+    assert all(v == 0 for v in summary["restarts"].values()), summary["restarts"]
+    ckpts = sorted((run_dir / "checkpoints").glob("ckpt-*.pt"))
+    assert ckpts, "the learner saved no checkpoint"
+    state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)
+    assert state["algo"] == "a3c" and state["updates"] >= 2000
+    assert all(torch.isfinite(t).all() for t in state["model"].values())
+    assert (run_dir / "config.yaml").is_file() and (run_dir / "metrics.jsonl").is_file()
+    assert list((run_dir / "tb").rglob("events.out.tfevents.*")), "no TensorBoard events"
+    assert not _leftovers(run_id), _leftovers(run_id)

@@ -1,0 +1,267 @@
+"""A3C without a network: n-step returns against hand-computed values, the worker's published
+gradients against plain autograd on the same rollout, and the learner's gradient checks
+(staleness, unknown versions, NaN/overflow, wrong names/shapes), checkpoint round trip."""
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+from torch.nn import functional as F
+
+from zenrl.actor.a3c import A3CWorker, nstep_returns
+from zenrl.common import protocol as P
+from zenrl.common.config import load_config
+from zenrl.common.errors import ProtocolError, RemoteTimeout
+from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
+from zenrl.common.specs import ArraySpec
+from zenrl.common.transport import LatestValue
+from zenrl.learner.a3c import APPLIED, STALE, UNKNOWN_VERSION, A3CLearnerService, GradientApplier
+
+G = 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# n-step returns
+# --------------------------------------------------------------------------------------------
+def test_nstep_returns_hand_computed():
+    # env 0: no episode end; env 1: terminated at t=1; env 2: truncated at t=0 (final value 7);
+    # env 3: terminated and truncated at t=2 (termination wins: no bootstrap)
+    r = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0], [3.0, 3.0, 3.0, 3.0]], np.float32)
+    term = np.zeros((3, 4), bool)
+    trunc = np.zeros((3, 4), bool)
+    term[1, 1] = True
+    trunc[0, 2] = True
+    term[2, 3] = trunc[2, 3] = True
+    final = np.zeros((3, 4))
+    final[0, 2] = 7.0
+    final[2, 3] = 1000.0  # must be ignored: terminated
+    boot = np.array([10.0, 20.0, 30.0, 40.0])
+    R = nstep_returns(r, term, trunc, final, boot, G)
+    assert R.dtype == np.float32 and R.shape == (3, 4)
+    np.testing.assert_allclose(R[:, 0], [1 + G * 2 + G**2 * 3 + G**3 * 10, 2 + G * 3 + G**2 * 10, 3 + G * 10], rtol=1e-6)
+    np.testing.assert_allclose(R[:, 1], [1 + G * 2, 2, 3 + G * 20], rtol=1e-6)
+    np.testing.assert_allclose(R[:, 2], [1 + G * 7, 2 + G * 3 + G**2 * 30, 3 + G * 30], rtol=1e-6)
+    np.testing.assert_allclose(R[:, 3], [1 + G * 2 + G**2 * 3, 2 + G * 3, 3], rtol=1e-6)
+
+
+def test_nstep_returns_one_step():
+    R = nstep_returns(np.array([[1.0]]), np.array([[False]]), np.array([[False]]), np.zeros((1, 1)), np.array([2.0]), 0.5)
+    assert R[0, 0] == pytest.approx(2.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Worker: published gradients == autograd of the same loss on the same rollout
+# --------------------------------------------------------------------------------------------
+class FakePub:
+    def __init__(self):
+        self.sent = []
+
+    def put(self, payload):
+        self.sent.append(payload)
+
+
+class FakeNode:
+    """Stands in for zenrl.common.transport.Node: records puts, serves one weights payload."""
+
+    def __init__(self, weights_payload=None):
+        self.pubs = {}
+        self.latest = LatestValue()
+        self.weights_payload = weights_payload
+
+    def publisher(self, key, low_priority=False, express=False):
+        return self.pubs.setdefault(key, FakePub())
+
+    def subscribe_latest(self, key):
+        return self.latest
+
+    def query(self, key, payload=None, timeout_s=5.0):
+        if self.weights_payload is None:
+            raise RemoteTimeout("no learner")
+        return self.weights_payload
+
+    def token(self, key):
+        return None
+
+
+def _cfg(tmp_path, **kw):
+    sets = [f"runs_dir={tmp_path}", "algo=a3c", "network.hidden=[16]", "actor.envs_per_actor=4",
+            "a3c.t_max=20", "a3c.entropy_coef=0.05", "a3c.value_coef=0.5", "learner.gamma=0.9",
+            "env.max_episode_steps=15"] + [f"{k}={v}" for k, v in kw.items()]
+    return load_config(None, sets, environ={})
+
+
+def _weights(cfg, version, seed=123):
+    torch.manual_seed(seed)
+    net = ActorCritic({"obs": ArraySpec((4,), "float32")}, 2, cfg.network)
+    return net, P.Weights(version=version, learner_id="learner", arch=arch_fingerprint(net), updates=5,
+                          params=params_to_arrays(net)).encode()
+
+
+def _reference_grads(net, ro, gamma, vc, ec):
+    """The A3C loss written out element by element, then plain autograd."""
+    T, E = ro.actions.shape
+    with torch.no_grad():
+        boot = net({"obs": torch.as_tensor(ro.last_obs["obs"])})[1]
+        fin = net({"obs": torch.as_tensor(ro.final_obs["obs"])})[1] if len(ro.final_obs["obs"]) else None
+    R = np.zeros((T, E))
+    k_of = {}
+    for i, flat in enumerate(np.flatnonzero((ro.truncated & ~ro.terminated).reshape(-1))):
+        k_of[divmod(int(flat), E)] = i
+    for e in range(E):
+        ret = float(boot[e])
+        for t in reversed(range(T)):
+            if ro.terminated[t, e]:
+                ret = float(ro.rewards[t, e])
+            elif ro.truncated[t, e]:
+                ret = float(ro.rewards[t, e]) + gamma * float(fin[k_of[(t, e)]])
+            else:
+                ret = float(ro.rewards[t, e]) + gamma * ret
+            R[t, e] = ret
+    net.zero_grad()
+    total = 0.0
+    for t in range(T):
+        logits, v = net({"obs": torch.as_tensor(ro.obs["obs"][t])})
+        for e in range(E):
+            logp = F.log_softmax(logits[e], dim=0)
+            adv = R[t, e] - float(v[e].detach())
+            ent = -(logp.exp() * logp).sum()
+            total = total - logp[ro.actions[t, e]] * adv + vc * (R[t, e] - v[e]) ** 2 - ec * ent
+    (total / (T * E)).backward()
+    return {k: p.grad.numpy().copy() for k, p in net.named_parameters()}
+
+
+def test_published_gradients_equal_autograd(tmp_path):
+    cfg = _cfg(tmp_path)
+    ref_net, payload = _weights(cfg, version=7)
+    node = FakeNode(payload)
+    w = A3CWorker(cfg, node, "t", "w0", 0)
+    rollouts = []
+    collect = w.collect
+    w.collect = lambda: rollouts.append(collect()) or rollouts[-1]
+    w.run(threading.Event(), max_rollouts=2)
+    sent = node.pubs[P.Keys("t").gradients("w0")].sent
+    assert len(sent) == 2 and len(rollouts) == 2
+    assert any(ro.terminated.any() for ro in rollouts), "the rollouts should hold terminations"
+    assert any((ro.truncated & ~ro.terminated).any() for ro in rollouts), "... and truncations"
+    for ro, payload in zip(rollouts, sent):
+        msg = P.Gradients.decode(payload)
+        assert msg.worker_id == "w0" and msg.version == 7 and msg.steps == 20 * 4
+        ref = _reference_grads(ref_net, ro, 0.9, 0.5, 0.05)
+        assert set(msg.grads) == set(ref)
+        for k in ref:
+            np.testing.assert_allclose(msg.grads[k], ref[k], rtol=1e-4, atol=1e-6, err_msg=k)
+        assert any(np.abs(g).sum() > 0 for g in ref.values())
+    stats = P.Stats.decode(node.pubs[P.Keys("t").stats("actor", "w0")].sent[-1])
+    assert stats.values["env_steps"] == 2 * 20 * 4
+
+
+def test_worker_takes_newest_params_between_steps(tmp_path):
+    cfg = _cfg(tmp_path)
+    _, p7 = _weights(cfg, version=7)
+    _, p9 = _weights(cfg, version=9, seed=5)
+    node = FakeNode(p7)
+    w = A3CWorker(cfg, node, "t", "w0", 0)
+    assert w.weights.fetch_initial(1.0) and w.weights.version == 7
+    node.latest.set("k", p9)
+    ro = w.collect()
+    assert w.weights.version == 9
+    assert w.gradients_message(ro).version == 9
+
+
+# --------------------------------------------------------------------------------------------
+# Learner: which gradients are applied
+# --------------------------------------------------------------------------------------------
+def _applier(tmp_path, **kw):
+    cfg = _cfg(tmp_path, **kw)
+    net, _ = _weights(cfg, 0)
+    return GradientApplier(net, cfg.learner, cfg.a3c), net
+
+
+def _grad_msg(net, version, scale=1.0, worker="w0"):
+    g = {k: np.full(p.shape, scale, np.float32) for k, p in net.named_parameters()}
+    return P.Gradients(worker_id=worker, version=version, steps=10, grads=g)
+
+
+def _snapshot(net):
+    return {k: v.clone() for k, v in net.state_dict().items()}
+
+
+def _same(net, snap):
+    return all(torch.equal(v, snap[k]) for k, v in net.state_dict().items())
+
+
+def test_staleness_and_unknown_version(tmp_path):
+    ap, net = _applier(tmp_path, **{"a3c.max_staleness": 3})
+    for _ in range(5):
+        ap.next_version()
+    assert ap.version == 5
+    snap = _snapshot(net)
+    assert ap.apply(_grad_msg(net, 1))[0] == STALE          # 5 - 1 = 4 > 3
+    assert ap.apply(_grad_msg(net, 6))[0] == UNKNOWN_VERSION
+    assert _same(net, snap) and ap.updates == 0
+    assert ap.apply(_grad_msg(net, 2))[0] == APPLIED        # 5 - 2 = 3, still accepted
+    assert not _same(net, snap) and ap.updates == 1 and ap.params_finite()
+
+
+def test_resync_after_restart(tmp_path):
+    ap, net = _applier(tmp_path, **{"a3c.max_staleness": 3})
+    ap.next_version()
+    assert ap.resync(40) and ap.version == 43
+    assert ap.next_version() == 44
+    assert ap.apply(_grad_msg(net, 40))[0] == STALE         # params of the dead incarnation
+    assert not ap.resync(10) and not ap.resync(1 << 60)
+
+
+def test_nan_gradient_rejected_params_finite(tmp_path):
+    ap, net = _applier(tmp_path)
+    ap.next_version()
+    bad = _grad_msg(net, 1)
+    k0 = next(iter(bad.grads))
+    bad.grads[k0][0] = np.nan
+    with pytest.raises(ProtocolError) as e:
+        P.Gradients.decode(bad.encode())
+    assert e.value.reason == "nonfinite"
+    snap = _snapshot(net)
+    huge = _grad_msg(net, 1, scale=3e38)                      # finite, but the norm overflows
+    with pytest.raises(ProtocolError) as e:
+        ap.apply(P.Gradients.decode(huge.encode()))
+    assert e.value.reason == "nonfinite"
+    assert _same(net, snap) and ap.params_finite() and ap.updates == 0
+
+
+def test_wrong_names_and_shapes_rejected(tmp_path):
+    ap, net = _applier(tmp_path)
+    ap.next_version()
+    snap = _snapshot(net)
+    m = _grad_msg(net, 1)
+    k0 = next(iter(m.grads))
+    wrong_shape = dict(m.grads, **{k0: np.zeros((3, 3), np.float32)})
+    missing = {k: v for k, v in m.grads.items() if k != k0}
+    extra = dict(m.grads, **{"bogus.weight": np.zeros(2, np.float32)})
+    for grads, reason in ((wrong_shape, "shape"), (missing, "names"), (extra, "names")):
+        with pytest.raises(ProtocolError) as e:
+            ap.apply(P.Gradients("w0", 1, 10, grads))
+        assert e.value.reason == reason
+    assert _same(net, snap) and ap.updates == 0
+
+
+def test_service_counts_rejections_and_checkpoint_round_trip(tmp_path):
+    cfg = _cfg(tmp_path, **{"network.hidden": "[8]"})
+    svc = A3CLearnerService(cfg, node=None, run_id="ck")
+    svc.applier.next_version()
+    net = svc.net
+    bad = P.Gradients("w1", 1, 10, {k: np.zeros((1,), np.float32) for k, _ in net.named_parameters()}).encode()
+    assert svc.handle("zenrl/ck/gradients/w1", bad) is None
+    assert svc.handle("zenrl/ck/gradients/w1", b"\x00garbage") is None
+    assert svc.rejects.counts["shape"] == 1 and svc.rejects.counts["malformed"] == 1
+    assert svc.handle("zenrl/ck/gradients/w0", _grad_msg(net, 1, 0.1).encode()) == APPLIED
+    assert svc.env_steps_trained == 10
+    svc.save()
+    again = A3CLearnerService(cfg, node=None, run_id="ck", resume="require")
+    assert again.applier.version == 1 and again.applier.updates == 1
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), again.net.state_dict().values()))
+    # the same next gradient gives the same params (optimizer state restored too)
+    for s in (svc, again):
+        assert s.handle("k/w0", _grad_msg(s.net, 1, -0.2).encode()) == APPLIED
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), again.net.state_dict().values()))
