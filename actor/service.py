@@ -158,8 +158,18 @@ class ApexActor:
         last_report = time.monotonic()
         steps = 0
         poll = self.cfg.actor.weights_poll_steps
+        cap = self.cfg.actor.max_steps_per_s
+        step_period = None if cap is None else E / cap  # seconds per batched step at the cap
+        next_step_t = time.monotonic()
         try:
             while not stop.is_set() and (max_steps is None or steps < max_steps):
+                if step_period is not None:
+                    next_step_t += step_period
+                    delay = next_step_t - time.monotonic()
+                    if delay > 0:
+                        stop.wait(delay)
+                    else:
+                        next_step_t = time.monotonic()  # behind: do not burst to catch up
                 if steps % poll == 0:
                     self.weights.maybe_load()
                 q = self._forward(obs)

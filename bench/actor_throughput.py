@@ -34,7 +34,6 @@ import platform
 import pstats
 import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -45,51 +44,11 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from _common import ROOT, Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 CONFIG = ROOT / "configs" / "cartpole_apex.yaml"
 ENVS = 64
 TARGET = 0.8
-
-
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-class Procs:
-    """OS processes started by the benchmark; all stopped in :meth:`stop_all`."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, name: str, argv: list[str]) -> subprocess.Popen:
-        with open(self.tmp / f"{name}.log", "ab") as logf:
-            env = dict(os.environ, ZENRL_PARENT_PID=str(os.getpid()))
-            p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stdout=logf, stderr=subprocess.STDOUT)
-        self.procs.append(p)
-        return p
-
-    def stop_all(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
-def wait_until(cond, timeout_s: float, what: str, interval_s: float = 0.05):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(interval_s)
 
 
 class ReplayStats:

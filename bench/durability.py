@@ -36,7 +36,6 @@ import re
 import shutil
 import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -47,16 +46,13 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from _common import Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 CHUNK = 64
 TARGET_RATIO = 0.8
 TARGET_LOST_S = 5.0
 STREAM_CHUNKS_PER_S = 200  # 12,800 transitions/s
 RESTORED_RE = re.compile(r"replay restored (\d+) items \(keys up to (-?\d+)\)")
-
-
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray]]:
@@ -172,56 +168,6 @@ def part_a(rounds: int, duration_s: float, tmp: Path) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 # part B: loss window after SIGKILL
 # --------------------------------------------------------------------------------------------
-class Procs:
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, name: str, argv: list[str], capture: bool = False) -> subprocess.Popen:
-        with open(self.tmp / f"{name}.log", "ab") as logf:
-            env = dict(os.environ, ZENRL_PARENT_PID=str(os.getpid()), BENCH_PARENT_PID=str(os.getpid()))
-            p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stderr=logf,
-                                 stdout=subprocess.PIPE if capture else logf, text=capture or None)
-        self.procs.append(p)
-        return p
-
-    def log_text(self, name: str) -> str:
-        p = self.tmp / f"{name}.log"
-        return p.read_text(errors="replace") if p.exists() else ""
-
-    @staticmethod
-    def stop(p: subprocess.Popen, grace_s: float = 15) -> None:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(timeout=grace_s)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-    def stop_all(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
-def wait_until(cond, timeout_s: float, what: str, interval_s: float = 0.02):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(interval_s)
-
-
 class Counter:
     """Counts transitions chunks seen on ``transitions/*`` (items and receipt times)."""
 

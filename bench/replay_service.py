@@ -45,15 +45,12 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from _common import Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 CHUNK = 64
 SAMPLE_BATCH = 512
 IN_FLIGHT = 4
 N_PUBLISHERS = 2
-
-
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -139,7 +136,6 @@ def role_pub(args: argparse.Namespace) -> int:
                 if time.monotonic() > deadline or stop.is_set():
                     return 3
                 time.sleep(0.05)
-            send = None
         else:
             batches = cartpole_batches(args.seed, pool_n)
             client = ZenohReplayClient(node, keys, args.id)
@@ -276,48 +272,6 @@ def role_sampler(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------
 # orchestration
 # ---------------------------------------------------------------------------------------------
-class Procs:
-    """OS processes started by the benchmark; all stopped in :meth:`stop_all` (SIGTERM, then
-    SIGKILL after a grace period)."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: list[tuple[str, subprocess.Popen]] = []
-
-    def start(self, name: str, argv: list[str], capture: bool = False) -> subprocess.Popen:
-        logf = open(self.tmp / f"{name}.log", "ab")
-        env = dict(os.environ, BENCH_PARENT_PID=str(os.getpid()), ZENRL_PARENT_PID=str(os.getpid()))
-        p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stderr=logf,
-                             stdout=subprocess.PIPE if capture else logf, text=capture or None)
-        logf.close()
-        self.procs.append((name, p))
-        return p
-
-    def log_text(self, name: str) -> str:
-        p = self.tmp / f"{name}.log"
-        return p.read_text(errors="replace") if p.exists() else ""
-
-    def stop(self, p: subprocess.Popen, grace_s: float = 10.0) -> None:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(timeout=grace_s)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-    def stop_all(self) -> None:
-        for _, p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for _, p in self.procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
 def last_json(text: str) -> dict[str, Any]:
     for line in reversed(text.strip().splitlines()):
         line = line.strip()
@@ -378,17 +332,6 @@ class SentWatch:
         wait_until(lambda: len(self.reports) >= n, timeout_s, f"{n} publishers to finish")
         with self._lock:
             return list(self.reports.values())
-
-
-def wait_until(cond, timeout_s: float, what: str, interval_s: float = 0.05):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(interval_s)
 
 
 def go(node: Any, keys: Any, n: int) -> float:

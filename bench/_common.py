@@ -1,0 +1,75 @@
+"""Helpers shared by the benchmark scripts: stderr logging, child processes that are always
+stopped, and waiting on a condition with a deadline. (Benchmarks print their JSON result as the
+last stdout line; everything else goes to stderr.)"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def wait_until(cond: Callable[[], Any], timeout_s: float, what: str, interval_s: float = 0.05) -> Any:
+    """Poll ``cond`` until it returns something truthy; raise naming ``what`` at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(interval_s)
+
+
+class Procs:
+    """OS processes started by a benchmark (``python ARGV`` in the repo root, logs in ``tmp``);
+    all stopped in :meth:`stop_all` (SIGTERM, then SIGKILL after a grace period). Children see
+    ``ZENRL_PARENT_PID``/``BENCH_PARENT_PID`` and stop by themselves if the benchmark dies."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, name: str, argv: list[str], capture: bool = False) -> subprocess.Popen:
+        """``capture``: stdout is a text pipe (for a child that prints a JSON result)."""
+        with open(self.tmp / f"{name}.log", "ab") as logf:
+            env = dict(os.environ, ZENRL_PARENT_PID=str(os.getpid()), BENCH_PARENT_PID=str(os.getpid()))
+            p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stderr=logf,
+                                 stdout=subprocess.PIPE if capture else logf, text=capture or None)
+        self.procs.append(p)
+        return p
+
+    def log_text(self, name: str) -> str:
+        p = self.tmp / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def stop(self, p: subprocess.Popen, grace_s: float = 15.0) -> None:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    def stop_all(self, grace_s: float = 15.0) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for p in self.procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
