@@ -4,7 +4,7 @@ Measures, in one run, on loopback through an in-process Zenoh router (every othe
 separate OS process, all Zenoh clients of that router):
 
   * ``ingest`` - transitions/s inserted by a ``zenrl replay`` process fed by 2 publisher
-    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of 64 transitions with
+    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of actor.chunk_size (default 256) transitions with
     priorities), measured at the receiver from the service's own stats
     (``inserted_total`` with ``replay.stats_interval_s`` = 0.05 s);
   * ``raw`` - the same byte stream (the same encoded ``transitions`` messages, put with the
@@ -46,8 +46,9 @@ from typing import Any
 import numpy as np
 
 from _common import Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from zenrl.common.config import ActorConfig  # noqa: E402
 
-CHUNK = 64
+CHUNK = ActorConfig().chunk_size  # what actors send by default
 SAMPLE_BATCH = 512
 IN_FLIGHT = 4
 N_PUBLISHERS = 2
