@@ -42,10 +42,10 @@ from zenrl.common import protocol as P
 from zenrl.common.config import A3CConfig, LearnerConfig, RunConfig
 from zenrl.common.errors import ProtocolError
 from zenrl.common.metrics import MetricsWriter, RateMeter, RejectCounter
-from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays, resolve_device
+from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
 from zenrl.common.transport import Node
-from zenrl.learner.checkpoint import checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
-from zenrl.learner.service import BackgroundSender, check_resume_compatible, env_shapes
+from zenrl.learner.checkpoint import load_latest, save_checkpoint
+from zenrl.learner.service import BackgroundSender, LearnerBase, check_resume_compatible
 
 log = logging.getLogger(__name__)
 
@@ -155,19 +155,10 @@ class GradientApplier:
         self._good = [p.detach().clone() for p in self.params.values()]
 
 
-class A3CLearnerService:
+class A3CLearnerService(LearnerBase):
     def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
-        self.cfg = cfg
-        self.node = node
-        self.keys = P.Keys(run_id)
-        self.id = learner_id
-        self.run_dir = Path(cfg.runs_dir) / run_id
-        self.ckpt_dir = checkpoint_dir(cfg.runs_dir, run_id)
-        torch.set_num_threads(cfg.learner.torch_threads)
-        self.device = resolve_device(cfg.learner.device)
-        spec, n_actions = env_shapes(cfg)
-        torch.manual_seed(cfg.seed)
-        self.net = ActorCritic(spec, n_actions, cfg.network).to(self.device)
+        super().__init__(cfg, node, run_id, learner_id)
+        self.net = ActorCritic(self.spec, self.n_actions, cfg.network).to(self.device)
         self.arch = arch_fingerprint(self.net)
         self.applier = GradientApplier(self.net, cfg.learner, cfg.a3c)
         self.env_steps_trained = 0
@@ -182,7 +173,7 @@ class A3CLearnerService:
         self._n_applied = 0
         self._resync_pending = False
         self._latest_weights: bytes | None = None
-        if resume == "require" or (resume == "auto" and list_checkpoints(self.ckpt_dir)):
+        if self.wants_resume(resume):
             self._restore()
 
     # -- state -------------------------------------------------------------------------------

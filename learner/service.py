@@ -84,8 +84,12 @@ def check_resume_compatible(saved_cfg: dict[str, Any], cfg: RunConfig, saved_arc
                               f"network={old.network.model_dump()} was saved, config gives {cfg.network.model_dump()}")
 
 
-class ApexLearnerService:
-    def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
+class LearnerBase:
+    """What every learner service shares: identity and keys, run and checkpoint paths, device,
+    the env's observation spec and action count, and the seed set before the network is built
+    (so actors that build theirs from the same seed start from the same weights)."""
+
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, learner_id: str) -> None:
         self.cfg = cfg
         self.node = node
         self.keys = P.Keys(run_id)
@@ -94,14 +98,23 @@ class ApexLearnerService:
         self.ckpt_dir = checkpoint_dir(cfg.runs_dir, run_id)
         torch.set_num_threads(cfg.learner.torch_threads)
         self.device = resolve_device(cfg.learner.device)
-        spec, n_actions = env_shapes(cfg)
+        self.spec, self.n_actions = env_shapes(cfg)
         torch.manual_seed(cfg.seed)
-        self.dqn = DQNLearner(spec, n_actions, cfg.network, cfg.learner, self.device)
+
+    def wants_resume(self, resume: str) -> bool:
+        """``resume``: "never", "require" (an error without a checkpoint) or "auto"."""
+        return resume == "require" or (resume == "auto" and bool(list_checkpoints(self.ckpt_dir)))
+
+
+class ApexLearnerService(LearnerBase):
+    def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
+        super().__init__(cfg, node, run_id, learner_id)
+        self.dqn = DQNLearner(self.spec, self.n_actions, cfg.network, cfg.learner, self.device)
         self.arch = arch_fingerprint(self.dqn.online)
         self.version = 0
         self.transitions_consumed = 0
         self._latest_weights: bytes | None = None
-        if resume == "require" or (resume == "auto" and list_checkpoints(self.ckpt_dir)):
+        if self.wants_resume(resume):
             self._restore()
         self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
 
