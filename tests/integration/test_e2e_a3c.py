@@ -12,16 +12,15 @@ import uuid
 import pytest
 import torch
 
-from tests.conftest import ROOT, free_port
+from tests.conftest import ROOT, free_port, zenrl_pids
 
 pytestmark = pytest.mark.integration
 
 RANDOM_CARTPOLE_RETURN = 22.0
 
 
-def _leftovers(run_id: str) -> list[str]:
-    out = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
-    return [line for line in out.splitlines() if run_id in line and "ps -eo" not in line]
+def _leftovers(run_id: str) -> list[int]:
+    return zenrl_pids(run_id)
 
 
 def test_zenrl_run_a3c_learns_cartpole(tmp_path):
