@@ -205,7 +205,10 @@ class ApexActor:
                     last_report = now
         finally:
             self._flush()
-            self.replay.flush_backlog()
+            left = self.replay.flush_backlog()
+            if left:
+                self.replay.undelivered_chunks += left
+                log.warning("actor %s stops with %d chunks no replay could take", self.id, left)
             self._report(eps_pub, stats_pub, max(time.monotonic() - last_report, 1e-6))
             self.envs.close()
 

@@ -13,6 +13,7 @@ import itertools
 import logging
 import queue
 import threading
+import time
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -59,12 +60,17 @@ class ZenohReplayClient:
         self.backlog_limit = backlog_chunks
         #: chunks that could not be delivered: backlog overflow or a failed put
         self.undelivered_chunks = 0
+        #: how long a new publisher waits for the replay's subscription to become visible
+        self.match_wait_s = min(1.0, timeout_s)
 
     def insert(self, batch: Mapping[str, np.ndarray], priorities: np.ndarray | None = None,
                policy_version: int = -1) -> None:
         """Publish one chunk. Raises ProtocolError if it would exceed the size cap."""
         if self._tx is None:
             self._tx = self.node.publisher(self.keys.transitions(self.actor_id))
+            # a new publisher learns of existing subscribers only after a round trip to the
+            # router: wait for that (bounded) so the first chunks are not held back needlessly
+            self._wait_matching(self.match_wait_s)
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
                                 data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32))
         payload = msg.encode(self.max_bytes)
@@ -88,11 +94,21 @@ class ZenohReplayClient:
             self.undelivered_chunks += 1
             log.warning("could not publish a chunk: %s", e)
 
-    def flush_backlog(self) -> None:
-        """Send held chunks if a replay is reachable now (called before an actor stops)."""
-        if self._tx is not None and self._backlog and self._tx.matching_status.matching:
+    def _wait_matching(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not self._tx.matching_status.matching:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def flush_backlog(self, timeout_s: float = 2.0) -> int:
+        """Send held chunks once a replay is reachable, waiting up to ``timeout_s`` for one
+        (called before an actor stops); returns the chunks still held (then undelivered)."""
+        if self._tx is not None and self._backlog and self._wait_matching(timeout_s):
             while self._backlog:
                 self._put(self._backlog.popleft())
+        return len(self._backlog)
 
     @property
     def backlog(self) -> int:

@@ -34,6 +34,8 @@ def publish(args: argparse.Namespace) -> int:
                 "n": np.full(b, 3, np.uint8),
             }
             client.insert(batch, rng.random(b).astype(np.float32) + 0.1, policy_version=i)
+        if client.flush_backlog(10.0):
+            return 4  # chunks left undelivered
     return 0
 
 
