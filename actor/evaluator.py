@@ -87,7 +87,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
                 evaluated = follower.version
                 rets = play_episodes(net, envs, cfg.seed + ecfg.seed_offset + rounds * ecfg.episodes, ecfg.epsilon)
                 rounds += 1
-                pub.put(P.EvalResult(version=follower.version, updates=follower.updates, env_steps=0, returns=rets).encode())
+                pub.put(P.EvalResult(version=follower.version, updates=follower.updates, returns=rets).encode())
                 metrics.write("eval", follower.updates, {"return_mean": float(rets.mean()), "return_std": float(rets.std()),
                                                          "return_min": float(rets.min()), "return_max": float(rets.max()),
                                                          "version": follower.version})

@@ -570,11 +570,9 @@ class EvalResult(Message):
     """Evaluator -> anyone: greedy episodes played with weights ``version``. float32[K]."""
 
     TYPE: ClassVar[str] = "eval"
-    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "uint", "env_steps": "uint",
-                                        "returns": "array"}
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "uint", "returns": "array"}
     version: int
     updates: int
-    env_steps: int
     returns: np.ndarray
 
     def _validate(self) -> None:

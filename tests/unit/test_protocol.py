@@ -28,7 +28,7 @@ MESSAGES = [
     P.Weights(3, "learner", "mlp:4-64-2", 99, {"w": np.ones((2, 3), np.float32), "b": np.zeros(3, np.float32)}),
     P.Gradients("w0", 2, 40, {"w": np.ones((2, 3), np.float32)}),
     P.EpisodeStats("a0", 1, 0.1, 3, 1000, np.array([1.5, 2.0], np.float32), np.array([10, 20], np.int32)),
-    P.EvalResult(3, 100, 5000, np.array([500.0], np.float32)),
+    P.EvalResult(3, 100, np.array([500.0], np.float32)),
     P.Stats("replay", "r0", 12.5, {"size": 3, "rate": 1.5, "name": "x"}),
 ]
 
