@@ -23,6 +23,7 @@ import torch
 
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.nstep import Emitted, NStepBuilder
+from zenrl.actor.pacing import StepPacer
 from zenrl.actor.slots import claim_slot
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
@@ -158,18 +159,12 @@ class ApexActor:
         last_report = time.monotonic()
         steps = 0
         poll = self.cfg.actor.weights_poll_steps
-        cap = self.cfg.actor.max_steps_per_s
-        step_period = None if cap is None else E / cap  # seconds per batched step at the cap
-        next_step_t = time.monotonic()
+        pacer = StepPacer(self.cfg.actor.max_steps_per_s, E)
         try:
             while not stop.is_set() and (max_steps is None or steps < max_steps):
-                if step_period is not None:
-                    next_step_t += step_period
-                    delay = next_step_t - time.monotonic()
-                    if delay > 0:
-                        stop.wait(delay)
-                    else:
-                        next_step_t = time.monotonic()  # behind: do not burst to catch up
+                delay = pacer.delay()
+                if delay:
+                    stop.wait(delay)
                 if steps % poll == 0:
                     self.weights.maybe_load()
                 q = self._forward(obs)

@@ -103,3 +103,19 @@ def test_epsilon_ladder():
     np.testing.assert_allclose(env_epsilons(1, 2, 4), [apex_epsilon(4 + k, 8) for k in range(4)])
     with pytest.raises(ValueError):
         apex_epsilon(0, 0)
+
+
+def test_step_pacer_caps_the_rate_without_bursting():
+    from zenrl.actor.pacing import StepPacer
+
+    now = [100.0]
+    p = StepPacer(max_steps_per_s=80.0, envs=8, clock=lambda: now[0])  # 10 batched steps/s
+    assert p.delay() == pytest.approx(0.1)          # the first step waits one period
+    now[0] += 0.1
+    now[0] += 0.03                                   # the step itself took 30 ms
+    assert p.delay() == pytest.approx(0.07)          # only the rest of the period
+    now[0] += 0.07
+    now[0] += 0.5                                    # a slow step: far behind schedule
+    assert p.delay() == 0.0                          # no wait ...
+    assert p.delay() == pytest.approx(0.1)           # ... and no burst afterwards
+    assert StepPacer(None, 8, clock=lambda: now[0]).delay() == 0.0
