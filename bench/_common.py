@@ -4,7 +4,9 @@ last stdout line; everything else goes to stderr.)"""
 
 from __future__ import annotations
 
+import json
 import os
+import platform
 import signal
 import subprocess
 import sys
@@ -73,3 +75,29 @@ class Procs:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def machine_info(t_start: float) -> dict[str, Any]:
+    """Fields every benchmark reports about the run (``t_start``: ``time.perf_counter()``)."""
+    return {"python": platform.python_version(), "cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0],
+            "wall_s": round(time.perf_counter() - t_start, 1)}
+
+
+def record_error(out: dict[str, Any], e: BaseException) -> None:
+    out["error"] = f"{type(e).__name__}: {e}"[:2000]
+    log(f"benchmark failed: {out['error']}")
+
+
+def emit(out: dict[str, Any]) -> int:
+    """Print the result as the last stdout line; the exit code says whether it failed."""
+    print(json.dumps(out))
+    return 1 if out.get("error") else 0
+
+
+def _interrupt(*_: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM ends a benchmark like Ctrl-C: its ``finally`` stops every child process."""
+    signal.signal(signal.SIGTERM, _interrupt)

@@ -28,11 +28,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import json
-import os
-import platform
 import pstats
-import signal
 import statistics
 import sys
 import tempfile
@@ -44,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import ROOT, Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import ROOT, Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CONFIG = ROOT / "configs" / "cartpole_apex.yaml"
 ENVS = 64
@@ -274,25 +270,17 @@ def orchestrate(args: argparse.Namespace) -> int:
                       "(in this process) use CPU during the actor rounds only; 2-core machine shared with "
                       "other work"),
             "torch": torch.__version__,
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-            "load_avg_1m": os.getloadavg()[0],
-            "wall_s": round(time.perf_counter() - t_start, 1),
+            **machine_info(t_start),
         })
     except BaseException as e:
-        out["error"] = f"{type(e).__name__}: {e}"[:2000]
-        log(f"benchmark failed: {out['error']}")
+        record_error(out, e)
     finally:
         procs.stop_all()
         if node is not None:
             node.close()
         router.close()
-    print(json.dumps(out))
-    return 1 if out.get("error") else 0
+    return emit(out)
 
-
-def _interrupt(*_: Any) -> None:
-    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -300,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="one short round")
     ap.add_argument("--profile", action="store_true", help="profile the actor even if it meets the target")
     args = ap.parse_args(argv)
-    signal.signal(signal.SIGTERM, _interrupt)
+    stop_on_sigterm()
     return orchestrate(args)
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import shutil
 import signal
@@ -46,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CHUNK = 64
 TARGET_RATIO = 0.8
@@ -327,25 +326,17 @@ def orchestrate(args: argparse.Namespace) -> int:
                       "round, log on the ext4 disk holding /tmp, default flush (fsync) and snapshot intervals, "
                       "medians of alternating rounds; *_cpu uses the ingest thread's CPU time (fsync waits are "
                       "not CPU). lost_seconds_after_kill is the worst trial; a SIGKILL loses only what the process had not yet written (data written but not fsynced survives in the page cache), unsynced_seconds_max is the not-yet-fsynced part at the last stats before the kill, what an OS crash or power cut could lose; 2-core machine shared with other work"),
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-            "load_avg_1m": os.getloadavg()[0],
-            "wall_s": round(time.perf_counter() - t_start, 1),
+            **machine_info(t_start),
         })
     except BaseException as e:
-        out["error"] = f"{type(e).__name__}: {e}"[:2000]
-        log(f"benchmark failed: {out['error']}")
+        record_error(out, e)
     finally:
         if out.get("error"):
             log(f"logs kept in {tmp}")
         else:
             shutil.rmtree(tmp, ignore_errors=True)
-    print(json.dumps(out))
-    return 1 if out.get("error") else 0
+    return emit(out)
 
-
-def _interrupt(*_: Any) -> None:
-    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -360,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.role == "pub":
         return role_pub(args)
-    signal.signal(signal.SIGTERM, _interrupt)
+    stop_on_sigterm()
     return orchestrate(args)
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import statistics
 import subprocess
@@ -45,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, log, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 from zenrl.common.config import ActorConfig  # noqa: E402
 
 CHUNK = ActorConfig().chunk_size  # what actors send by default
@@ -522,21 +521,16 @@ def orchestrate(args: argparse.Namespace) -> int:
                       "a subscriber process that only copies the payload out and counts; medians of "
                       "alternating rounds; router in the benchmark process; 2-core machine shared with "
                       "other work, so absolute figures are noisy, the ratio less so"),
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-            "load_avg_1m": os.getloadavg()[0],
-            "wall_s": round(time.perf_counter() - t_start, 1),
+            **machine_info(t_start),
         })
     except BaseException as e:
-        out["error"] = f"{type(e).__name__}: {e}"[:2000]
-        log(f"benchmark failed: {out['error']}")
+        record_error(out, e)
     finally:
         procs.stop_all()
         if node is not None:
             node.close()
         router.close()
-    print(json.dumps(out))
-    return 1 if out.get("error") else 0
+    return emit(out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -560,12 +554,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.role == "sampler":
         return role_sampler(args)
     # SIGTERM on the benchmark itself still runs the cleanup in orchestrate's finally
-    signal.signal(signal.SIGTERM, _interrupt)
+    stop_on_sigterm()
     return orchestrate(args)
 
-
-def _interrupt(*_: Any) -> None:
-    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":
