@@ -61,6 +61,21 @@ def wait_until(cond: Callable[[], object], timeout_s: float, what: str, interval
         time.sleep(interval_s)
 
 
+def run_zenrl(tmp_path: Path, config: str, run_id: str, *sets: str, extra_args: tuple[str, ...] = (),
+              timeout_s: float = 900) -> tuple[subprocess.CompletedProcess, Path, dict[str, str]]:
+    """``zenrl run --config CONFIG`` to completion on a free port with runs under ``tmp_path``;
+    ``sets`` are ``section.field=value`` overrides. Returns (process, run dir, log tails)."""
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", config, "--run-id", run_id, "--no-progress",
+           "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]",
+           *extra_args]
+    for s in sets:
+        cmd += ["--set", s]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
+    run_dir = tmp_path / run_id
+    logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
+    return p, run_dir, logs
+
+
 @pytest.fixture
 def router():
     """A real Zenoh router (in this process) on a free port; yields its client endpoint."""

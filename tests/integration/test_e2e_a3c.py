@@ -5,14 +5,12 @@ learner must have rejected nothing, its checkpoint must hold finite params, and 
 left running."""
 
 import json
-import subprocess
-import sys
 import uuid
 
 import pytest
 import torch
 
-from tests.conftest import ROOT, free_port, zenrl_pids
+from tests.conftest import run_zenrl, zenrl_pids
 
 pytestmark = pytest.mark.integration
 
@@ -25,14 +23,8 @@ def _leftovers(run_id: str) -> list[int]:
 
 def test_zenrl_run_a3c_learns_cartpole(tmp_path):
     run_id = f"e2e-a3c-{uuid.uuid4().hex[:8]}"  # unique: another test session may run beside this one
-    port = free_port()
-    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_a3c.yaml", "--run-id", run_id,
-           "--no-progress", "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[tcp/127.0.0.1:{port}]",
-           "--set", "max_updates=2000", "--set", "max_wall_s=600", "--set", "target_return=null",
-           "--set", "evaluator.interval_s=3"]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
-    run_dir = tmp_path / run_id
-    logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_a3c.yaml", run_id, "max_updates=2000", "max_wall_s=600",
+                                 "target_return=null", "evaluator.interval_s=3")
     assert p.returncode == 0, (p.stderr[-3000:], logs)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]

@@ -3,12 +3,10 @@ the evaluator as OS processes; with an update budget, the greedy eval return mus
 above a random policy's (~22 on CartPole-v1), and nothing may be left running."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
-from tests.conftest import ROOT, free_port, zenrl_pids
+from tests.conftest import run_zenrl, zenrl_pids
 
 pytestmark = pytest.mark.integration
 
@@ -21,14 +19,8 @@ def _leftovers(run_id: str) -> list[int]:
 
 def test_zenrl_run_learns_cartpole(tmp_path):
     run_id = "e2e-apex"
-    port = free_port()
-    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_apex.yaml", "--run-id", run_id,
-           "--no-progress", "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[tcp/127.0.0.1:{port}]",
-           "--set", "max_updates=5000", "--set", "max_wall_s=600", "--set", "target_return=null",
-           "--set", "evaluator.interval_s=3"]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
-    run_dir = tmp_path / run_id
-    logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "max_updates=5000", "max_wall_s=600",
+                                 "target_return=null", "evaluator.interval_s=3")
     assert p.returncode == 0, (p.stderr[-3000:], logs)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]
