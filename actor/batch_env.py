@@ -9,7 +9,10 @@ import numpy as np
 
 from zenrl.common.config import EnvConfig
 from zenrl.common.env_factory import make_env
+from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.networks import flat_obs
+
+_OUTCOME_SIGN = {"win": 1, "draw": 0, "loss": -1}
 
 
 def stack_flat(obs_list: list) -> dict[str, np.ndarray]:
@@ -24,7 +27,7 @@ class StepResult:
     """One batched step. ``obs``: the observation to act on next (reset obs for envs that just
     ended); ``next_obs``: the observation that followed the action (the *final* one for envs that
     ended). rewards float32[E], terminated/truncated bool[E]; finished episodes' returns and
-    lengths."""
+    lengths, and for match envs their outcomes (+1 win, 0 draw, -1 loss; None for other envs)."""
 
     obs: dict[str, np.ndarray]
     next_obs: dict[str, np.ndarray]
@@ -33,6 +36,7 @@ class StepResult:
     truncated: np.ndarray
     ep_returns: list[float]
     ep_lengths: list[int]
+    ep_outcomes: list[int | None]
 
 
 class EnvBatch:
@@ -60,9 +64,9 @@ class EnvBatch:
         term = np.zeros(E, bool)
         trunc = np.zeros(E, bool)
         nxt = list(self._obs)
-        rets, lens = [], []
+        rets, lens, outs = [], [], []
         for i, env in enumerate(self.envs):
-            o, r, te, tr, _ = env.step(actions[i])
+            o, r, te, tr, info = env.step(actions[i])
             rew[i], term[i], trunc[i] = r, te, tr
             nxt[i] = o
             self._ret[i] += r
@@ -70,12 +74,14 @@ class EnvBatch:
             if te or tr:
                 rets.append(float(self._ret[i]))
                 lens.append(int(self._len[i]))
+                m = match_outcome(info)
+                outs.append(None if m is None else _OUTCOME_SIGN[m[0]])
                 self._ret[i] = 0
                 self._len[i] = 0
                 o, _ = env.reset()
             self._obs[i] = o
         obs = stack_flat(self._obs)
-        return StepResult(obs, stack_flat(nxt) if rets else obs, rew, term, trunc, rets, lens)
+        return StepResult(obs, stack_flat(nxt) if rets else obs, rew, term, trunc, rets, lens, outs)
 
     def close(self) -> None:
         for env in self.envs:

@@ -33,12 +33,14 @@ def greedy_action(net: torch.nn.Module, obs: dict[str, np.ndarray]) -> np.ndarra
 
 
 def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: float = 0.0,
-                  rng: np.random.Generator | None = None) -> np.ndarray:
-    """Play one episode in each env of ``envs`` (seeded ``seed + i``); float32[E] returns."""
+                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Play one episode in each env of ``envs`` (seeded ``seed + i``). Returns float32[E]
+    returns and, for match envs, int8[E] outcomes (+1 win, 0 draw, -1 loss), else None."""
     envs.seed = seed
     obs = envs.reset()
     E = envs.num_envs
     returns = np.zeros(E, np.float64)
+    outcomes: list[int | None] = [None] * E
     finished = np.zeros(E, bool)
     n_act = num_actions(envs.single_action_space)
     rng = rng or np.random.default_rng(seed)
@@ -49,9 +51,15 @@ def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: floa
             a[r] = rng.integers(0, n_act, int(r.sum()))
         res = envs.step(a)
         returns += np.where(finished, 0.0, res.rewards)
-        finished |= res.terminated | res.truncated
+        ended = (res.terminated | res.truncated) & ~finished
+        # EnvBatch lists finished episodes in env order
+        for i, out in zip(np.flatnonzero(res.terminated | res.truncated), res.ep_outcomes):
+            if ended[i]:
+                outcomes[i] = out
+        finished |= ended
         obs = res.obs
-    return returns.astype(np.float32)
+    known = None if any(o is None for o in outcomes) else np.array(outcomes, np.int8)
+    return returns.astype(np.float32), known
 
 
 def build_policy_net(cfg: RunConfig, envs: EnvBatch) -> torch.nn.Module:
@@ -85,13 +93,20 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
                     next_t = time.monotonic() + 0.5
                     continue
                 evaluated = follower.version
-                rets = play_episodes(net, envs, cfg.seed + ecfg.seed_offset + rounds * ecfg.episodes, ecfg.epsilon)
+                rets, outcomes = play_episodes(net, envs, cfg.seed + ecfg.seed_offset + rounds * ecfg.episodes,
+                                               ecfg.epsilon)
                 rounds += 1
-                pub.put(P.EvalResult(version=follower.version, updates=follower.updates, returns=rets).encode())
-                metrics.write("eval", follower.updates, {"return_mean": float(rets.mean()), "return_std": float(rets.std()),
-                                                         "return_min": float(rets.min()), "return_max": float(rets.max()),
-                                                         "version": follower.version})
-                log.info("eval v%d (%d updates): return %.1f +- %.1f", follower.version, follower.updates, rets.mean(), rets.std())
+                pub.put(P.EvalResult(version=follower.version, updates=follower.updates, returns=rets,
+                                     outcomes=outcomes).encode())
+                values = {"return_mean": float(rets.mean()), "return_std": float(rets.std()),
+                          "return_min": float(rets.min()), "return_max": float(rets.max()), "version": follower.version}
+                won = ""
+                if outcomes is not None:
+                    values.update(win_rate=float((outcomes == 1).mean()), draw_rate=float((outcomes == 0).mean()))
+                    won = f", won {int((outcomes == 1).sum())}/{outcomes.size}"
+                metrics.write("eval", follower.updates, values)
+                log.info("eval v%d (%d updates): return %.1f +- %.1f%s", follower.version, follower.updates,
+                         rets.mean(), rets.std(), won)
         finally:
             metrics.close()
             envs.close()

@@ -567,17 +567,23 @@ class EpisodeStats(Message):
 
 @dataclass(frozen=True)
 class EvalResult(Message):
-    """Evaluator -> anyone: greedy episodes played with weights ``version``. float32[K]."""
+    """Evaluator -> anyone: greedy episodes played with weights ``version``. returns float32[K];
+    outcomes int8[K] (+1 win, 0 draw, -1 loss) for match envs, nil otherwise."""
 
     TYPE: ClassVar[str] = "eval"
-    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "uint", "returns": "array"}
+    SCHEMA: ClassVar[dict[str, str]] = {"version": "int", "updates": "uint", "returns": "array", "outcomes": "array?"}
     version: int
     updates: int
     returns: np.ndarray
+    outcomes: np.ndarray | None = None
 
     def _validate(self) -> None:
         _require_1d("returns", self.returns, "f")
         _require_finite("returns", self.returns)
+        if self.outcomes is not None:
+            _require_1d("outcomes", self.outcomes, "i", self.returns.shape[0])
+            if self.outcomes.size and (self.outcomes.min() < -1 or self.outcomes.max() > 1):
+                raise ProtocolError("outcomes", "must be -1 (loss), 0 (draw) or +1 (win)", "field")
 
 
 @dataclass(frozen=True)

@@ -111,6 +111,7 @@ class Progress:
                 self.evals.append({"t": time.monotonic() - self.start, "version": msg.version, "updates": msg.updates,
                                    "env_steps": self.env_steps, "mean": float(msg.returns.mean()),
                                    "std": float(msg.returns.std()), "n": int(msg.returns.size),
+                                   "win_rate": None if msg.outcomes is None else float((msg.outcomes == 1).mean()),
                                    "since_first_step": None if self.first_step_t is None else time.monotonic() - self.first_step_t})
 
     def _actor(self, actor_id: str, steps: int) -> None:
@@ -228,7 +229,9 @@ class Launcher:
                 "updates_per_s": round(float(p.learner.get("updates_per_s", 0.0)), 1),
                 "replay_size": p.replay.get("size", 0), "weights_version": p.learner.get("version", 0),
                 "train_return_100": round(float(np.mean(p.recent_returns)), 1) if p.recent_returns else None,
-                "eval_return": None if p.last_eval is None else round(p.last_eval, 1)}
+                "eval_return": None if p.last_eval is None else round(p.last_eval, 1),
+                **({"eval_win_rate": round(p.evals[-1]["win_rate"], 2)}
+                   if p.evals and p.evals[-1].get("win_rate") is not None else {})}
 
     # -- main --------------------------------------------------------------------------------
     def run(self) -> int:

@@ -33,6 +33,7 @@ import torch
 
 from zenrl.common.config import EnvConfig, RunConfig
 from zenrl.common.env_factory import make_env
+from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
 from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config, read_checkpoint
@@ -180,19 +181,7 @@ class EpisodeRunner:
             done = term or trunc
         res = EpisodeResult(job.index, job.seed, job.opponent, job.side, ret, n)
         if job.opponent is not None:
-            me = "r" if info["side"] == "red" else "b"
-            other = "b" if me == "r" else "r"
-            scores = info["war_state"]["scores"]
-            res.my_score, res.enemy_score = int(scores[me]), int(scores[other])
-            winner = info.get("winner")
-            # the contest counts a win only when my score is higher (a game cut off by
-            # max_steps counts by the score at that moment)
-            if res.my_score > res.enemy_score:
-                res.outcome = "win"
-            elif res.my_score < res.enemy_score:
-                res.outcome = "loss"
-            else:
-                res.outcome = "draw" if winner in (None, "draw") else ("win" if winner == me else "loss")
+            res.outcome, res.my_score, res.enemy_score = match_outcome(info)
         return res
 
     def close(self) -> None:

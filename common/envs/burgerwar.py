@@ -22,7 +22,7 @@ import pybullet as p
 from gymnasium import spaces
 
 from zenrl.common.envs import bw_geometry as geo
-from zenrl.common.envs.bw_judge import BLUE, NEUTRAL, RED, Judge
+from zenrl.common.envs.bw_judge import BLUE, NEUTRAL, RED, Judge, match_outcome  # noqa: F401 (re-export)
 from zenrl.common.envs.bw_opponents import OPPONENT_NAMES, OpponentView, make_opponent
 from zenrl.common.envs.bw_render import TopDownRenderer
 

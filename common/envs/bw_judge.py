@@ -17,7 +17,7 @@ ownership does not change): this keeps the rules point-symmetric.
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
@@ -142,3 +142,20 @@ class Judge:
                         for n, o, p in zip(TARGET_NAMES, self.owners.tolist(), _POINTS)],
             "time": float(self.time),
         }
+
+
+def match_outcome(info: Mapping[str, Any]) -> tuple[str, int, int] | None:
+    """(outcome, my score, enemy score) from the ``info`` of a match's last step, or None for
+    an info without a match (not this env). ``outcome`` is "win", "draw" or "loss" as the
+    contest counts it: a win only when my score is higher; at equal scores the judge's winner
+    decides (a draw when there is none, e.g. a match cut off by ``max_steps``)."""
+    if "war_state" not in info or "side" not in info:
+        return None
+    me = "r" if info["side"] == "red" else "b"
+    other = "b" if me == "r" else "r"
+    scores = info["war_state"]["scores"]
+    mine, theirs = int(scores[me]), int(scores[other])
+    if mine != theirs:
+        return ("win" if mine > theirs else "loss"), mine, theirs
+    winner = info.get("winner")
+    return ("draw" if winner in (None, "draw") else ("win" if winner == me else "loss")), mine, theirs

@@ -107,3 +107,19 @@ def test_reset_clears_everything():
     assert j.scores == (0, 0) and j.state == "running" and not j.sudden_death
     assert (j.owners == NEUTRAL).all() and j.time == 0.0
     assert BLUE == 2
+
+
+def _info(side, r, b, winner=None):
+    return {"side": side, "war_state": {"scores": {"r": r, "b": b}}, "winner": winner}
+
+
+def test_match_outcome_counts_like_the_contest():
+    from zenrl.common.envs.bw_judge import match_outcome
+
+    assert match_outcome(_info("red", 3, 1, "r")) == ("win", 3, 1)
+    assert match_outcome(_info("blue", 3, 1, "r")) == ("loss", 1, 3)
+    # a higher score wins even if the match was cut off before the judge named a winner
+    assert match_outcome(_info("blue", 0, 2)) == ("win", 2, 0)
+    assert match_outcome(_info("red", 2, 2, "draw")) == ("draw", 2, 2)
+    assert match_outcome(_info("red", 0, 0)) == ("draw", 0, 0)
+    assert match_outcome({"TimeLimit.truncated": True}) is None

@@ -29,6 +29,7 @@ MESSAGES = [
     P.Gradients("w0", 2, 40, {"w": np.ones((2, 3), np.float32)}),
     P.EpisodeStats("a0", 1, 0.1, 3, 1000, np.array([1.5, 2.0], np.float32), np.array([10, 20], np.int32)),
     P.EvalResult(3, 100, np.array([500.0], np.float32)),
+    P.EvalResult(3, 100, np.array([7.0, -2.0, 0.0], np.float32), np.array([1, -1, 0], np.int8)),
     P.Stats("replay", "r0", 12.5, {"size": 3, "rate": 1.5, "name": "x"}),
 ]
 
@@ -132,6 +133,13 @@ def test_nonfinite_rewards_and_priorities():
     _raises(P.TransitionBatch("a", 0, 0, _batch(), np.array([1, 1, -1, 1, 1], np.float32)).encode(), "priorities", "negative")
     g = P.Gradients("w", 0, 1, {"w": np.array([np.nan], np.float32)}).encode()
     _raises(g, "grads.w", "nonfinite", cls=P.Gradients)
+
+
+def test_eval_outcomes_checked():
+    rets = np.zeros(2, np.float32)
+    _raises(P.EvalResult(1, 1, rets, np.array([1, 2], np.int8)).encode(), "outcomes", "field", cls=P.EvalResult)
+    _raises(P.EvalResult(1, 1, rets, np.array([1], np.int8)).encode(), "outcomes", "batch", cls=P.EvalResult)
+    _raises(P.EvalResult(1, 1, rets, np.array([1.0, 0.0], np.float32)).encode(), "outcomes", "dtype", cls=P.EvalResult)
 
 
 def test_size_caps():
