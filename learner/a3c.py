@@ -188,6 +188,8 @@ class A3CLearnerService(LearnerBase):
         state, path = load_latest(self.ckpt_dir)
         check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
         self.applier.load_state_dict(state)
+        # parameters published after that checkpoint had higher versions: continue above them
+        self.applier.version = self.versions.resume_version(self.applier.version)
         self.env_steps_trained = int(state.get("env_steps_trained", 0))
         torch.set_rng_state(state["torch_rng"])
         log.info("resumed from %s: %d updates, params version %d", path, self.applier.updates, self.applier.version)
@@ -206,7 +208,7 @@ class A3CLearnerService(LearnerBase):
             self.queue_dropped += 1
 
     def _encode_weights(self) -> bytes:
-        version = self.applier.next_version()
+        version = self.versions.claim(self.applier.next_version())
         return P.Weights(version=version, learner_id=self.id, arch=self.arch, updates=self.applier.updates,
                          params=params_to_arrays(self.net)).encode(self.cfg.transport.max_message_bytes)
 

@@ -91,3 +91,28 @@ def read_version_mark(run_dir: str | os.PathLike[str]) -> int:
         return int(p.read_text().strip())
     except (FileNotFoundError, ValueError):
         return 0
+
+
+class VersionReservation:
+    """Versions handed out in blocks recorded in the run's high-water mark file: before a
+    version above the reserved one is published, the mark moves to ``version + block`` (one
+    small file write per ``block`` versions, not per broadcast). A learner resumed from any
+    checkpoint starts at ``max(checkpoint version, mark)``, above every version it published."""
+
+    def __init__(self, run_dir: str | os.PathLike[str], block: int = 1000) -> None:
+        if block < 1:
+            raise ValueError(f"block must be >= 1, got {block}")
+        self.run_dir = Path(run_dir)
+        self.block = block
+        self.reserved = read_version_mark(self.run_dir)
+
+    def resume_version(self, checkpoint_version: int) -> int:
+        """The version to continue from after restoring a checkpoint saved at ``checkpoint_version``."""
+        return max(int(checkpoint_version), self.reserved)
+
+    def claim(self, version: int) -> int:
+        """Call before publishing ``version``; returns it."""
+        if version > self.reserved:
+            self.reserved = int(version) + self.block
+            write_version_mark(self.run_dir, self.reserved)
+        return version

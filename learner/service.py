@@ -24,8 +24,7 @@ from zenrl.common.metrics import MetricsWriter, RateMeter
 from zenrl.common.networks import arch_fingerprint, num_actions, obs_spec, params_to_arrays, resolve_device
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
 from zenrl.common.transport import Node
-from zenrl.learner.checkpoint import (checkpoint_dir, list_checkpoints, load_latest, read_version_mark,
-                                     save_checkpoint, write_version_mark)
+from zenrl.learner.checkpoint import VersionReservation, checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
 from zenrl.learner.dqn import DQNLearner
 
 log = logging.getLogger(__name__)
@@ -96,6 +95,7 @@ class LearnerBase:
         self.id = learner_id
         self.run_dir = Path(cfg.runs_dir) / run_id
         self.ckpt_dir = checkpoint_dir(cfg.runs_dir, run_id)
+        self.versions = VersionReservation(self.run_dir)
         torch.set_num_threads(cfg.learner.torch_threads)
         self.device = resolve_device(cfg.learner.device)
         self.spec, self.n_actions = env_shapes(cfg)
@@ -130,7 +130,7 @@ class ApexLearnerService(LearnerBase):
         check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
         self.dqn.load_state_dict(state["learner"])
         # versions published after that checkpoint are above it: continue above the high-water mark
-        self.version = max(int(state["version"]), read_version_mark(self.run_dir))
+        self.version = self.versions.resume_version(int(state["version"]))
         self.transitions_consumed = int(state["transitions_consumed"])
         torch.set_rng_state(state["torch_rng"])
         log.info("resumed from %s: %d updates, weights version %d", path, self.dqn.updates, self.version)
@@ -142,8 +142,7 @@ class ApexLearnerService(LearnerBase):
 
     # -- weights -----------------------------------------------------------------------------
     def _encode_weights(self) -> bytes:
-        self.version += 1
-        write_version_mark(self.run_dir, self.version)
+        self.version = self.versions.claim(self.version + 1)
         return P.Weights(version=self.version, learner_id=self.id, arch=self.arch, updates=self.dqn.updates,
                          params=params_to_arrays(self.dqn.online)).encode(self.cfg.transport.max_message_bytes)
 

@@ -122,3 +122,47 @@ def test_kill_actor_learner_replay_and_recover(tmp_path):
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
     assert summary["restarts"]["actor-0"] == 1 and summary["restarts"]["learner"] == 1 and summary["restarts"]["replay"] == 1
     assert not [p for role in ("actor", "learner", "replay", "evaluator") for p in _pids(run_id, role)]
+
+
+def test_a3c_learner_killed_resumes_from_checkpoint(tmp_path):
+    """A3C: SIGKILL the parameter server mid-run; the launcher restarts it from its checkpoint,
+    the parameter version continues upward, and the workers' gradients are applied again."""
+    run_id = "chaos-a3c"
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_a3c.yaml", "--run-id", run_id,
+           "--no-progress", "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[{ep}]",
+           "--set", "max_wall_s=300", "--set", "target_return=null", "--set", "evaluator.interval_s=2",
+           "--set", "learner.checkpoint_interval_s=2", "--set", "learner.log_interval_s=0.5"]
+    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    logs = tmp_path / run_id / "logs"
+    try:
+        with Node(ep, 60.0) as node:
+            w = Watch(node, P.Keys(run_id))
+            wait_until(lambda: w.get("learner/learner", "updates") >= 300, 180, "300 applied gradients")
+            wait_until(lambda: "checkpoint " in (logs / "learner.log").read_text(), 60, "a checkpoint")
+            old = _pids(run_id, "learner")
+            assert len(old) == 1
+            version_before = w.get("learner/learner", "version")
+            os.kill(old[0], signal.SIGKILL)
+            wait_until(lambda: (p := _pids(run_id, "learner")) and p != old, 60, "learner restarted")
+            m = wait_until(lambda: re.search(r"resumed from .*ckpt-(\d+)\.pt: (\d+) updates, params version (\d+)",
+                                             (logs / "learner.log").read_text()), 120, "the learner resuming")
+            ckpt_updates, resumed_version = int(m.group(2)), int(m.group(3))
+            assert ckpt_updates > 0
+            assert resumed_version >= version_before   # never goes back
+            wait_until(lambda: w.get("learner/learner", "updates") > ckpt_updates + 50, 120,
+                       "workers' gradients applied after the restart")
+            wait_until(lambda: any(v > resumed_version for v, _ in list(w.evals)), 120,
+                       "an evaluation of post-restart parameters")
+    finally:
+        launcher.send_signal(signal.SIGTERM)
+        try:
+            out, _ = launcher.communicate(timeout=90)
+        except subprocess.TimeoutExpired:
+            launcher.kill()
+            raise AssertionError("the launcher hung on SIGTERM")
+    assert launcher.returncode == 0, out[-3000:]
+    summary = json.loads((tmp_path / run_id / "summary.json").read_text())
+    assert summary["restarts"]["learner"] == 1
+    assert not [p for role in ("actor", "learner", "evaluator") for p in _pids(run_id, role)]

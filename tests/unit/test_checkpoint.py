@@ -98,3 +98,25 @@ def test_version_mark(tmp_path):
     write_version_mark(tmp_path, 41)
     write_version_mark(tmp_path, 42)
     assert read_version_mark(tmp_path) == 42
+
+
+def test_version_reservation_writes_once_per_block_and_resumes_above(tmp_path, monkeypatch):
+    from zenrl.learner import checkpoint as C
+
+    writes = []
+    real = C.write_version_mark
+    monkeypatch.setattr(C, "write_version_mark", lambda d, v: (writes.append(v), real(d, v)))
+    r = C.VersionReservation(tmp_path, block=100)
+    assert r.resume_version(7) == 7            # nothing published yet
+    assert r.claim(1) == 1 and read_version_mark(tmp_path) == 101
+    for v in range(2, 102):                    # inside the block: no write
+        r.claim(v)
+    assert writes == [101]
+    r.claim(102)
+    assert writes == [101, 202]
+    assert read_version_mark(tmp_path) == 202
+    # a learner restarted from a checkpoint saved at version 50 continues above 102
+    r2 = C.VersionReservation(tmp_path, block=100)
+    assert r2.resume_version(50) == 202 and r2.resume_version(500) == 500
+    with pytest.raises(ValueError):
+        C.VersionReservation(tmp_path, block=0)
