@@ -24,6 +24,17 @@ def _pids(run_id: str, role: str, ident: str | None = None) -> list[int]:
     return zenrl_pids(run_id, role, ident)
 
 
+def _stop(launcher: subprocess.Popen) -> str:
+    """SIGTERM the launcher as Ctrl-C would; its output. It must stop within 90 s."""
+    launcher.send_signal(signal.SIGTERM)
+    try:
+        out, _ = launcher.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        launcher.kill()
+        raise AssertionError("the launcher hung on SIGTERM")
+    return out
+
+
 class Watch:
     """Latest stats per process and eval results, from the run's Zenoh keys."""
 
@@ -112,12 +123,7 @@ def test_kill_actor_learner_replay_and_recover(tmp_path):
             assert after >= 0.5 * before, (before, after, w.evals)
             assert w.get("learner/learner", "updates") > ckpt_updates
     finally:
-        launcher.send_signal(signal.SIGTERM)
-        try:
-            out, _ = launcher.communicate(timeout=90)
-        except subprocess.TimeoutExpired:
-            launcher.kill()
-            raise AssertionError("the launcher hung on SIGTERM")
+        out = _stop(launcher)
     assert launcher.returncode == 0, out[-3000:]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
     assert summary["restarts"]["actor-0"] == 1 and summary["restarts"]["learner"] == 1 and summary["restarts"]["replay"] == 1
@@ -156,12 +162,7 @@ def test_a3c_learner_killed_resumes_from_checkpoint(tmp_path):
             wait_until(lambda: any(v > resumed_version for v, _ in list(w.evals)), 120,
                        "an evaluation of post-restart parameters")
     finally:
-        launcher.send_signal(signal.SIGTERM)
-        try:
-            out, _ = launcher.communicate(timeout=90)
-        except subprocess.TimeoutExpired:
-            launcher.kill()
-            raise AssertionError("the launcher hung on SIGTERM")
+        out = _stop(launcher)
     assert launcher.returncode == 0, out[-3000:]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
     assert summary["restarts"]["learner"] == 1
