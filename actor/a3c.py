@@ -11,7 +11,8 @@ The calling loop of one worker::
         (no waiting for fresh params: the worker keeps acting with what it has, as in A3C)
 
 Returns are n-step returns bootstrapped with V (no bootstrap after ``terminated``; after
-``truncated`` the value of the episode's final observation is used). Everything above the
+``truncated`` the value of the episode's final observation is used), or with
+``a3c.gae_lambda`` < 1 generalized-advantage lambda-returns over the same rollout. Everything above the
 ``A3CWorker`` class is pure (no Zenoh) and unit-tested.
 """
 
@@ -61,6 +62,36 @@ def nstep_returns(rewards: np.ndarray, terminated: np.ndarray, truncated: np.nda
     return out.astype(np.float32)
 
 
+def gae_returns(rewards: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, values: np.ndarray,
+                final_values: np.ndarray, bootstrap: np.ndarray, gamma: float, lam: float) -> np.ndarray:
+    """Generalized-advantage (lambda-) return targets ``A_t + V(s_t)`` of a rollout.
+
+    rewards float[T, E]; terminated, truncated bool[T, E]; values float[T, E]: V(s_t) of the
+    observations acted on; final_values, bootstrap as in :func:`nstep_returns`. With
+    ``v'_t`` the value of the state after step t (0 after ``terminated``, ``final_values_t``
+    after ``truncated``, else ``V(s_{t+1})``, ``bootstrap`` after the last step)::
+
+        delta_t = r_t + gamma * v'_t - V(s_t)
+        A_t     = delta_t + gamma * lam * A_{t+1}   (A_{t+1} = 0 where the episode ended at t)
+
+    ``lam = 1`` gives exactly :func:`nstep_returns`; ``lam = 0`` the one-step TD targets.
+    Returns float32[T, E].
+    """
+    T = rewards.shape[0]
+    v = np.asarray(values, np.float64)
+    out = np.zeros(rewards.shape, np.float64)
+    A = np.zeros(rewards.shape[1:], np.float64)
+    for t in range(T - 1, -1, -1):
+        nxt = np.asarray(bootstrap, np.float64) if t == T - 1 else v[t + 1]
+        nxt = np.where(truncated[t], final_values[t], nxt)
+        nxt = np.where(terminated[t], 0.0, nxt)
+        ended = terminated[t] | truncated[t]
+        delta = rewards[t] + gamma * nxt - v[t]
+        A = delta + gamma * lam * np.where(ended, 0.0, A)
+        out[t] = A + v[t]
+    return out.astype(np.float32)
+
+
 def a3c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor,
              value_coef: float, entropy_coef: float) -> tuple[torch.Tensor, dict[str, float]]:
     """The A3C loss, averaged over N = T * E samples.
@@ -104,12 +135,13 @@ class Rollout:
 
 
 def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coef: float,
-                      entropy_coef: float) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+                      entropy_coef: float, gae_lambda: float = 1.0) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Gradients of :func:`a3c_loss` on one rollout w.r.t. ``net``'s parameters.
 
     One forward pass over the T*E rollout observations, the E bootstrap observations and the K
     final observations of truncated episodes; the values of the last two groups are detached and
-    only feed :func:`nstep_returns`. Returns (``{parameter name: float32 array}``, metrics).
+    only feed the targets: :func:`nstep_returns` (``gae_lambda`` = 1, A3C) or
+    :func:`gae_returns`. Returns (``{parameter name: float32 array}``, metrics).
     """
     T, E = ro.actions.shape
     N = T * E
@@ -126,7 +158,11 @@ def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coe
     extra = values[N:].detach().numpy().astype(np.float64)
     final_values = np.zeros(N, np.float64)
     final_values[trunc_idx] = extra[E:]
-    returns = nstep_returns(ro.rewards, ro.terminated, ro.truncated, final_values.reshape(T, E), extra[:E], gamma)
+    if gae_lambda == 1.0:
+        returns = nstep_returns(ro.rewards, ro.terminated, ro.truncated, final_values.reshape(T, E), extra[:E], gamma)
+    else:
+        returns = gae_returns(ro.rewards, ro.terminated, ro.truncated, values[:N].detach().numpy().reshape(T, E),
+                              final_values.reshape(T, E), extra[:E], gamma, gae_lambda)
     loss, m = a3c_loss(logits[:N], values[:N], torch.from_numpy(ro.actions.reshape(N)),
                        torch.from_numpy(returns.reshape(N)), value_coef, entropy_coef)
     net.zero_grad(set_to_none=True)
@@ -181,6 +217,7 @@ class A3CWorker:
         self._ep_lengths: list[int] = []
         self._acc: dict[str, float] = {}
         self._n_acc = 0
+        self._metrics: Any = None
 
     # -- acting ---------------------------------------------------------------------------
     def collect(self) -> Rollout:
@@ -217,7 +254,7 @@ class A3CWorker:
     def gradients_message(self, ro: Rollout) -> P.Gradients:
         """The gradients of the loss on ``ro`` at the current params, as a wire message."""
         a = self.cfg.a3c
-        grads, m = rollout_gradients(self.net, ro, self.cfg.learner.gamma, a.value_coef, a.entropy_coef)
+        grads, m = rollout_gradients(self.net, ro, self.cfg.learner.gamma, a.value_coef, a.entropy_coef, a.gae_lambda)
         for k, v in m.items():
             self._acc[k] = self._acc.get(k, 0.0) + v
         self._n_acc += 1
@@ -232,7 +269,13 @@ class A3CWorker:
             stop.wait(0.1)
         return False
 
-    def run(self, stop: threading.Event, max_rollouts: int | None = None) -> None:
+    def run(self, stop: threading.Event, max_rollouts: int | None = None, metrics: Any = None) -> None:
+        """Act, compute and publish gradients until ``stop`` (or ``max_rollouts``). Every
+        ``actor.episode_report_s`` the worker publishes its episodes and stats (mean loss,
+        policy loss, value loss, entropy, advantage and value over the rollouts since) and, with
+        a ``metrics`` writer (:class:`~zenrl.common.metrics.MetricsWriter`), also records those
+        stats under source ``worker<slot>``."""
+        self._metrics = metrics
         grads_pub = self.node.publisher(self.keys.gradients(self.id))
         eps_pub = self.node.publisher(self.keys.episodes(self.id))
         stats_pub = self.node.publisher(self.keys.stats("actor", self.id))
@@ -268,4 +311,6 @@ class A3CWorker:
         vals.update({"env_steps": self.env_steps, "slot": self.slot, "policy_version": self.weights.version,
                      "sent_gradients": self.sent_gradients, "weights_rejected": self.weights.rejected})
         self._acc, self._n_acc = {}, 0
+        if self._metrics is not None:
+            self._metrics.write(f"worker{self.slot}", self.env_steps, vals)
         stats_pub.put(P.Stats(role="actor", id=self.id, time=time.time(), values=vals).encode())

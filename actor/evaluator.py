@@ -18,6 +18,7 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import ActorCritic, QNetwork, num_actions, obs_spec, to_tensors
+from zenrl.common.policy_io import sampled_actions
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
@@ -33,8 +34,9 @@ def greedy_action(net: torch.nn.Module, obs: dict[str, np.ndarray]) -> np.ndarra
 
 
 def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: float = 0.0,
-                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Play one episode in each env of ``envs`` (seeded ``seed + i``). Returns float32[E]
+                  rng: np.random.Generator | None = None, sample: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """Play one episode in each env of ``envs`` (seeded ``seed + i``), greedy (or, with
+    ``sample``, drawing from an actor-critic's policy with ``rng``). Returns float32[E]
     returns and, for match envs, int8[E] outcomes (+1 win, 0 draw, -1 loss), else None."""
     envs.seed = seed
     obs = envs.reset()
@@ -45,7 +47,7 @@ def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: floa
     n_act = num_actions(envs.single_action_space)
     rng = rng or np.random.default_rng(seed)
     while not finished.all():
-        a = greedy_action(net, obs)
+        a = sampled_actions(net, obs, rng) if sample else greedy_action(net, obs)
         if epsilon > 0:
             r = rng.random(E) < epsilon
             a[r] = rng.integers(0, n_act, int(r.sum()))
@@ -94,7 +96,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
                     continue
                 evaluated = follower.version
                 rets, outcomes = play_episodes(net, envs, cfg.seed + ecfg.seed_offset + rounds * ecfg.episodes,
-                                               ecfg.epsilon)
+                                               ecfg.epsilon, sample=ecfg.policy == "sample")
                 rounds += 1
                 pub.put(P.EvalResult(version=follower.version, updates=follower.updates, returns=rets,
                                      outcomes=outcomes).encode())

@@ -16,6 +16,7 @@ import re
 import socket
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -237,7 +238,12 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | Non
             num_slots = None
         if cfg.algo == "a3c":
             from zenrl.actor.a3c import A3CWorker
+            from zenrl.common.metrics import MetricsWriter
 
-            A3CWorker(cfg, node, run_id, actor_id, slot).run(stop)
+            metrics = MetricsWriter(Path(cfg.runs_dir) / run_id)
+            try:
+                A3CWorker(cfg, node, run_id, actor_id, slot).run(stop, metrics=metrics)
+            finally:
+                metrics.close()
         else:
             ApexActor(cfg, node, run_id, actor_id, slot, num_slots).run(stop)

@@ -119,12 +119,16 @@ class EvalConfig(_Section):
     episodes: int = Field(10, ge=1, description="Greedy episodes per evaluation.")
     seed_offset: int = Field(1_000_000, ge=0, description="Evaluation seeds start at seed + seed_offset (separate from training seeds).")
     epsilon: float = Field(0.0, ge=0, le=1, description="Evaluation epsilon (0 = greedy).")
+    policy: Literal["greedy", "sample"] = Field("greedy", description="greedy: argmax actions; sample: draw from the policy's action distribution (a3c only), the policy A3C trains.")
 
 
 class A3CConfig(_Section):
     t_max: int = Field(5, ge=1, description="Rollout length per update (steps per env).")
     entropy_coef: float = Field(0.01, ge=0, description="Entropy bonus coefficient.")
     value_coef: float = Field(0.5, ge=0, description="Value loss coefficient.")
+    gae_lambda: float = Field(1.0, ge=0, le=1, description="1 = n-step returns bootstrapped with V (A3C); < 1 = generalized advantage estimation with this lambda over the rollout (lower variance).")
+    lr_anneal_updates: Optional[int] = Field(None, ge=1, description="Anneal learner.lr linearly over this many applied gradients down to lr * lr_final_fraction, then hold it (default: constant lr).")
+    lr_final_fraction: float = Field(0.1, ge=0, le=1, description="Final lr as a fraction of learner.lr when lr_anneal_updates is set.")
     max_staleness: int = Field(8, ge=0, description="Drop gradients computed from parameters more than this many versions old.")
     broadcast_every: int = Field(1, ge=1, description="Broadcast parameters every K applied gradients.")
     rmsprop_alpha: float = Field(0.99, gt=0, lt=1, description="RMSProp smoothing constant.")
@@ -159,6 +163,12 @@ class RunConfig(_Section):
     evaluator: EvalConfig = Field(default_factory=EvalConfig)
     a3c: A3CConfig = Field(default_factory=A3CConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
+
+    @model_validator(mode="after")
+    def _check(self) -> "RunConfig":
+        if self.evaluator.policy == "sample" and self.algo != "a3c":
+            raise ValueError("evaluator.policy 'sample' needs algo a3c (a Q network has no action distribution)")
+        return self
 
 
 # --------------------------------------------------------------------------------------------

@@ -112,28 +112,53 @@ def greedy_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray]) -> np.n
         return out.argmax(1).numpy()
 
 
+def sampled_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray], rng: np.random.Generator) -> np.ndarray:
+    """int64[B]: actions drawn from an actor-critic's categorical policy (softmax of its logits)
+    with ``rng``, for flat batched observations. A Q network has no policy to sample from:
+    :class:`ValueError`."""
+    if not isinstance(net, ActorCritic):
+        raise ValueError("sampling actions needs an actor-critic (a3c) network; a Q network is greedy only")
+    with torch.no_grad():
+        logits = net({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()})[0]
+        p = torch.softmax(logits.double(), 1).numpy()
+    u = rng.random((p.shape[0], 1))
+    return np.minimum((np.cumsum(p, 1) < u).sum(1), p.shape[1] - 1).astype(np.int64)
+
+
 class GreedyPolicy:
     """``policy(obs) -> int`` on single observations (what the match env's ``opponent_policy``
     and the tools call), with optional epsilon-random actions from its own generator.
 
-    ``net``: a QNetwork / ActorCritic; ``n_actions``: size of the discrete action space.
+    ``net``: a QNetwork / ActorCritic; ``n_actions``: size of the discrete action space;
+    ``sample``: draw actions from an actor-critic's policy instead of taking its argmax (the
+    policy A3C trains; a :class:`ValueError` for a Q network). :meth:`reseed` makes a sampled
+    episode reproducible.
     """
 
     def __init__(self, net: torch.nn.Module, n_actions: int, epsilon: float = 0.0, seed: int | None = None,
-                 name: str = "policy") -> None:
+                 name: str = "policy", sample: bool = False) -> None:
+        if sample and not isinstance(net, ActorCritic):
+            raise ValueError("sampling actions needs an actor-critic (a3c) checkpoint; a Q network is greedy only")
         self.net = net
         self.n_actions = int(n_actions)
         self.epsilon = float(epsilon)
+        self.sample = bool(sample)
         self.rng = np.random.default_rng(seed)
         self.name = name
+
+    def reseed(self, seed: int | None) -> None:
+        """Restart the policy's own random stream (epsilon and sampling) from ``seed``."""
+        self.rng = np.random.default_rng(seed)
 
     def __call__(self, obs: Any) -> int:
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(self.n_actions))
-        return int(greedy_actions(self.net, single_to_flat(obs))[0])
+        return int(self.batch(single_to_flat(obs))[0])
 
     def batch(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
-        """int64[B] greedy actions for flat batched observations (no epsilon)."""
+        """int64[B] actions (greedy, or sampled) for flat batched observations (no epsilon)."""
+        if self.sample:
+            return sampled_actions(self.net, flat, self.rng)
         return greedy_actions(self.net, flat)
 
 

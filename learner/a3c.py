@@ -111,12 +111,24 @@ class GradientApplier:
         if not np.isfinite(norm):
             self.opt.zero_grad(set_to_none=True)
             raise ProtocolError("grads", f"gradient norm is {norm} (overflow)", "nonfinite")
+        lr = self.current_lr()
+        for group in self.opt.param_groups:
+            group["lr"] = lr
         self.opt.step()
         self.opt.zero_grad(set_to_none=True)
         self.updates += 1
         if not self.params_finite():
             self._restore_good()
         return APPLIED, norm
+
+    def current_lr(self) -> float:
+        """``learner.lr``, or with ``a3c.lr_anneal_updates`` = N the linear anneal from it to
+        ``lr * a3c.lr_final_fraction`` over the first N applied gradients (held after)."""
+        n = self.acfg.lr_anneal_updates
+        if n is None:
+            return self.lcfg.lr
+        frac = min(1.0, self.updates / n)
+        return self.lcfg.lr * (1.0 - frac * (1.0 - self.acfg.lr_final_fraction))
 
     def params_finite(self) -> bool:
         return all(bool(torch.isfinite(p).all()) for p in self.params.values())
@@ -284,7 +296,8 @@ class A3CLearnerService(LearnerBase):
                         "policy_lag": self._lag_sum / n, "stale_dropped": self.stale_dropped,
                         "unknown_version_dropped": self.unknown_version_dropped,
                         "queue_dropped": self.queue_dropped, "queue_len": self._q.qsize(),
-                        "params_restored": self.applier.restored, "send_dropped": sender.dropped}
+                        "params_restored": self.applier.restored, "send_dropped": sender.dropped,
+                        "lr": self.applier.current_lr()}
                     vals.update(self.rejects.as_values())
                     stats_pub.put(P.Stats(role="learner", id=self.id, time=time.time(), values=vals).encode())
                     metrics.write("learner", self.applier.updates, vals)

@@ -179,7 +179,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "evaluate")
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
     summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
-                             args.workers, args.seed, progress=not args.no_progress)
+                             args.workers, args.seed, progress=not args.no_progress, policy=args.policy)
     Console(width=None if sys.stdout.isatty() else 120).print(tools.render_table(summary))
     if args.json:
         with open(args.json, "w") as f:
@@ -284,6 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--episodes", type=int, default=20, help="episodes per opponent (half red, half blue)")
     s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
     s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")
+    s.add_argument("--policy", choices=("greedy", "sample"), default="greedy",
+                   help="greedy: argmax; sample: draw from an a3c checkpoint's action distribution (seeded per episode)")
     s.add_argument("--json", metavar="OUT", help="also write the full results (every episode) as JSON here")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_evaluate)

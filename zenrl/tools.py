@@ -81,8 +81,9 @@ def _match_kwargs(kwargs: Mapping[str, Any], opponents: Sequence[str]) -> dict[s
 
 def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = None,
                     env_kwargs: Mapping[str, Any] | None = None, render_mode: str | None = None,
-                    opponents: Sequence[str] | None = None) -> tuple[GreedyPolicy, gym.Env, RunConfig]:
-    """Checkpoint -> (greedy policy, a fresh env it plays in, the checkpoint's config)."""
+                    opponents: Sequence[str] | None = None, sample: bool = False) -> tuple[GreedyPolicy, gym.Env, RunConfig]:
+    """Checkpoint -> (greedy policy, a fresh env it plays in, the checkpoint's config).
+    ``sample``: the policy draws from an actor-critic's action distribution instead."""
     state = read_checkpoint(checkpoint)
     cfg = checkpoint_config(state)
     ecfg = env_config_for(cfg, env_id, env_kwargs)
@@ -90,7 +91,12 @@ def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = Non
         ecfg = EnvConfig(id=ecfg.id, kwargs=_match_kwargs(ecfg.kwargs, opponents), max_episode_steps=ecfg.max_episode_steps)
     env = make_env(ecfg, render_mode=render_mode)
     net = build_network(state, env.observation_space, env.action_space)
-    return GreedyPolicy(net, num_actions(env.action_space), name=Path(checkpoint).name), env, cfg
+    try:
+        policy = GreedyPolicy(net, num_actions(env.action_space), name=Path(checkpoint).name, sample=sample)
+    except ValueError as e:
+        env.close()
+        raise ZenrlError(f"{checkpoint}: {e}") from None
+    return policy, env, cfg
 
 
 # --------------------------------------------------------------------------------------------
@@ -164,11 +170,12 @@ class EpisodeRunner:
     """Loads the checkpoint once and plays :class:`Job` episodes (one per call)."""
 
     def __init__(self, checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
-                 opponents: Sequence[str] | None) -> None:
+                 opponents: Sequence[str] | None, sample: bool = False) -> None:
         torch.set_num_threads(1)
-        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=opponents)
+        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=opponents, sample=sample)
 
     def run(self, job: Job) -> EpisodeResult:
+        self.policy.reseed(job.seed)  # a sampled episode depends on its job only, not on the worker
         options = {}
         if job.opponent is not None:
             options = {"opponent": job.opponent, "side": job.side}
@@ -192,9 +199,9 @@ _RUNNER: EpisodeRunner | None = None  # one per worker process (set by the pool 
 
 
 def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
-                 opponents: Sequence[str] | None) -> None:
+                 opponents: Sequence[str] | None, sample: bool = False) -> None:
     global _RUNNER
-    _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents)
+    _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents, sample)
 
 
 def _run_job(job: Job) -> EpisodeResult:
@@ -249,11 +256,16 @@ def summarize(results: Iterable[EpisodeResult], match: bool) -> dict[str, Any]:
 
 def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str, Any] | None = None,
              opponents: Sequence[str] | None = MATCH_OPPONENTS, episodes: int = 20, workers: int = 1,
-             seed: int = 2_000_000, progress: bool = True) -> dict[str, Any]:
+             seed: int = 2_000_000, progress: bool = True, policy: str = "greedy") -> dict[str, Any]:
     """Play ``episodes`` per opponent (match envs; ``opponents`` ignored otherwise) with the
-    greedy policy of ``checkpoint``; ``workers`` > 1 uses that many ``spawn`` processes.
-    Returns :func:`summarize`'s dict plus ``checkpoint``, ``env`` and per-episode ``results``."""
-    probe_policy, probe_env, cfg = load_policy_env(checkpoint, env_id, env_kwargs)
+    policy of ``checkpoint``: ``"greedy"`` (argmax) or ``"sample"`` (draw from an actor-critic's
+    action distribution, seeded per episode); ``workers`` > 1 uses that many ``spawn`` processes.
+    Returns :func:`summarize`'s dict plus ``checkpoint``, ``env``, ``policy`` and per-episode
+    ``results``."""
+    if policy not in ("greedy", "sample"):
+        raise ZenrlError(f"policy must be 'greedy' or 'sample', got {policy!r}")
+    sample = policy == "sample"
+    probe_policy, probe_env, cfg = load_policy_env(checkpoint, env_id, env_kwargs, sample=sample)
     match = is_match_env(probe_env)
     env_name = probe_env.spec.id if probe_env.spec else (env_id or cfg.env.id)
     probe_env.close()
@@ -281,7 +293,7 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
         bar.start()
     try:
         if workers <= 1:
-            runner = EpisodeRunner(checkpoint, env_id, env_kwargs, opps)
+            runner = EpisodeRunner(checkpoint, env_id, env_kwargs, opps, sample)
             try:
                 for j in jobs:
                     done(runner.run(j))
@@ -290,14 +302,14 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
         else:
             ctx = mp.get_context("spawn")
             with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_worker,
-                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps)) as pool:
+                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample)) as pool:
                 for fut in as_completed([pool.submit(_run_job, j) for j in jobs]):
                     done(fut.result())
     finally:
         if bar is not None:
             bar.stop()
     out = summarize(results, match)
-    out.update({"checkpoint": str(checkpoint), "env": env_name, "seed": seed,
+    out.update({"checkpoint": str(checkpoint), "env": env_name, "seed": seed, "policy": policy,
                 "results": [asdict(r) for r in sorted(results, key=lambda r: r.index)]})
     return out
 

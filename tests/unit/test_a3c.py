@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch.nn import functional as F
 
-from zenrl.actor.a3c import A3CWorker, nstep_returns
+from zenrl.actor.a3c import A3CWorker, gae_returns, nstep_returns, rollout_gradients
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
 from zenrl.common.errors import ProtocolError, RemoteTimeout
@@ -48,6 +48,45 @@ def test_nstep_returns_hand_computed():
 def test_nstep_returns_one_step():
     R = nstep_returns(np.array([[1.0]]), np.array([[False]]), np.array([[False]]), np.zeros((1, 1)), np.array([2.0]), 0.5)
     assert R[0, 0] == pytest.approx(2.0)
+
+
+def _episode_ends():
+    """Rewards, terminated, truncated, final values and bootstrap of the hand-computed case."""
+    r = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0], [3.0, 3.0, 3.0, 3.0]], np.float32)
+    term = np.zeros((3, 4), bool)
+    trunc = np.zeros((3, 4), bool)
+    term[1, 1] = True
+    trunc[0, 2] = True
+    term[2, 3] = trunc[2, 3] = True
+    final = np.zeros((3, 4))
+    final[0, 2] = 7.0
+    final[2, 3] = 1000.0
+    return r, term, trunc, final, np.array([10.0, 20.0, 30.0, 40.0])
+
+
+def test_gae_lambda_one_is_nstep_and_zero_is_td():
+    r, term, trunc, final, boot = _episode_ends()
+    v = np.random.default_rng(0).normal(size=(3, 4))
+    np.testing.assert_allclose(gae_returns(r, term, trunc, v, final, boot, G, 1.0),
+                               nstep_returns(r, term, trunc, final, boot, G), rtol=1e-5)
+    # lambda = 0: one-step targets r_t + gamma * (value of the next state)
+    td = gae_returns(r, term, trunc, v, final, boot, G, 0.0)
+    np.testing.assert_allclose(td[:, 0], [1 + G * v[1, 0], 2 + G * v[2, 0], 3 + G * 10], rtol=1e-5)
+    np.testing.assert_allclose(td[:, 1], [1 + G * v[1, 1], 2, 3 + G * 20], rtol=1e-5)
+    np.testing.assert_allclose(td[:, 2], [1 + G * 7, 2 + G * v[2, 2], 3 + G * 30], rtol=1e-5)
+    np.testing.assert_allclose(td[:, 3], [1 + G * v[1, 3], 2 + G * v[2, 3], 3], rtol=1e-5)
+
+
+def test_gae_hand_computed():
+    # one env, no episode end: A_1 = d_1, A_0 = d_0 + gamma * lam * d_1
+    lam = 0.5
+    r = np.array([[1.0], [2.0]])
+    v = np.array([[0.5], [1.5]])
+    no = np.zeros((2, 1), bool)
+    d1 = 2 + G * 4.0 - 1.5
+    d0 = 1 + G * 1.5 - 0.5
+    out = gae_returns(r, no, no, v, np.zeros((2, 1)), np.array([4.0]), G, lam)
+    np.testing.assert_allclose(out[:, 0], [d0 + G * lam * d1 + 0.5, d1 + 1.5], rtol=1e-6)
 
 
 # --------------------------------------------------------------------------------------------
@@ -98,8 +137,9 @@ def _weights(cfg, version, seed=123):
                           params=params_to_arrays(net)).encode()
 
 
-def _reference_grads(net, ro, gamma, vc, ec):
-    """The A3C loss written out element by element, then plain autograd."""
+def _reference_grads(net, ro, gamma, vc, ec, lam=1.0):
+    """The A3C loss written out element by element, then plain autograd (``lam`` < 1:
+    generalized-advantage targets, written out per env as well)."""
     T, E = ro.actions.shape
     with torch.no_grad():
         boot = net({"obs": torch.as_tensor(ro.last_obs["obs"])})[1]
@@ -118,6 +158,20 @@ def _reference_grads(net, ro, gamma, vc, ec):
             else:
                 ret = float(ro.rewards[t, e]) + gamma * ret
             R[t, e] = ret
+    if lam != 1.0:
+        with torch.no_grad():
+            V = np.stack([net({"obs": torch.as_tensor(ro.obs["obs"][t])})[1].numpy() for t in range(T)])
+        for e in range(E):
+            adv = 0.0
+            for t in reversed(range(T)):
+                if ro.terminated[t, e]:
+                    nxt, adv = 0.0, 0.0
+                elif ro.truncated[t, e]:
+                    nxt, adv = float(fin[k_of[(t, e)]]), 0.0
+                else:
+                    nxt = float(boot[e]) if t == T - 1 else float(V[t + 1, e])
+                adv = float(ro.rewards[t, e]) + gamma * nxt - float(V[t, e]) + gamma * lam * adv
+                R[t, e] = adv + float(V[t, e])
     net.zero_grad()
     total = 0.0
     for t in range(T):
@@ -154,6 +208,36 @@ def test_published_gradients_equal_autograd(tmp_path):
         assert any(np.abs(g).sum() > 0 for g in ref.values())
     stats = P.Stats.decode(node.pubs[P.Keys("t").stats("actor", "w0")].sent[-1])
     assert stats.values["env_steps"] == 2 * 20 * 4
+
+
+def test_gae_gradients_equal_autograd(tmp_path):
+    cfg = _cfg(tmp_path)
+    net, payload = _weights(cfg, version=3)
+    node = FakeNode(payload)
+    w = A3CWorker(cfg, node, "t", "w0", 0)
+    w.weights.fetch_initial(1.0)
+    ro = w.collect()
+    assert ro.terminated.any() and (ro.truncated & ~ro.terminated).any()
+    grads, _ = rollout_gradients(w.net, ro, 0.9, 0.5, 0.05, gae_lambda=0.8)
+    ref = _reference_grads(net, ro, 0.9, 0.5, 0.05, lam=0.8)
+    plain = _reference_grads(net, ro, 0.9, 0.5, 0.05)
+    for k in ref:
+        np.testing.assert_allclose(grads[k], ref[k], rtol=1e-4, atol=1e-6, err_msg=k)
+    assert any(not np.allclose(ref[k], plain[k], rtol=1e-3, atol=1e-5) for k in ref), "lambda must change the gradient"
+
+
+def test_lr_anneals_linearly_then_holds(tmp_path):
+    cfg = _cfg(tmp_path, **{"learner.lr": 0.01, "a3c.lr_anneal_updates": 4, "a3c.lr_final_fraction": 0.2})
+    net, _ = _weights(cfg, version=1)
+    ap = GradientApplier(net, cfg.learner, cfg.a3c)
+    grads = {k: np.ones(p.shape, np.float32) for k, p in net.named_parameters()}
+    seen = []
+    for _ in range(6):
+        seen.append(ap.current_lr())
+        assert ap.apply(P.Gradients(worker_id="w", version=0, steps=1, grads=grads))[0] == APPLIED
+        assert ap.opt.param_groups[0]["lr"] == pytest.approx(seen[-1])
+    np.testing.assert_allclose(seen, [0.01, 0.008, 0.006, 0.004, 0.002, 0.002], rtol=1e-9)
+    assert GradientApplier(net, _cfg(tmp_path).learner, _cfg(tmp_path).a3c).current_lr() == _cfg(tmp_path).learner.lr
 
 
 def test_worker_takes_newest_params_between_steps(tmp_path):

@@ -33,6 +33,9 @@ def test_errors_name_option_and_value(tmp_path):
         load_config(None, ["network.hidden=[]"], environ={})
     with pytest.raises(ConfigError, match="must look like"):
         load_config(None, ["nonsense"], environ={})
+    with pytest.raises(ConfigError, match=r"evaluator\.policy 'sample' needs algo a3c"):
+        load_config(None, ["evaluator.policy=sample"], environ={})
+    assert load_config(None, ["algo=a3c", "evaluator.policy=sample"], environ={}).evaluator.policy == "sample"
 
 
 def test_frozen():

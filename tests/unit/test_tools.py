@@ -18,9 +18,11 @@ import torch
 from zenrl.cli import main as cli_main
 from zenrl.common.config import RunConfig, SelfPlayConfig
 from zenrl.common.env_factory import make_env
+from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import ActorCritic, QNetwork, arch_fingerprint, num_actions, obs_spec
-from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, single_to_flat,
-                                    wrap_selfplay)
+from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, sampled_actions,
+                                    single_to_flat, wrap_selfplay)
+from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
 from zenrl import tools
 
@@ -108,6 +110,42 @@ def test_evaluate_match_counts_sides_and_parallel_equals_serial(ckpts):
     assert key == [(r["opponent"], r["side"], r["outcome"], r["my_score"], r["enemy_score"], r["length"])
                    for r in parallel["results"]]
     assert serial["total"]["episodes"] == 4
+
+
+def test_sampled_actions_follow_the_policy():
+    torch.manual_seed(0)
+    net = ActorCritic({"obs": ArraySpec((4,), "float32")}, 3, RunConfig().network).eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(4.0)
+    obs = {"obs": np.random.default_rng(0).normal(size=(2, 4)).astype(np.float32)}
+    with torch.no_grad():
+        probs = torch.softmax(net({"obs": torch.as_tensor(obs["obs"])})[0].double(), 1).numpy()
+    n = 20_000
+    rng = np.random.default_rng(1)
+    counts = np.zeros((2, 3))
+    for _ in range(n // 100):
+        for _ in range(100):
+            a = sampled_actions(net, obs, rng)
+            counts[[0, 1], a] += 1
+    # every frequency within 5 standard errors of its probability
+    se = np.sqrt(probs * (1 - probs) / n)
+    assert np.all(np.abs(counts / n - probs) <= 5 * se + 1e-9), (counts / n, probs)
+    assert not np.allclose(probs[0], probs[1], atol=0.05), "the two observations should differ"
+    with pytest.raises(ValueError, match="actor-critic"):
+        sampled_actions(QNetwork({"obs": ArraySpec((4,), "float32")}, 3, RunConfig().network), obs, rng)
+
+
+def test_evaluate_sample_policy_is_seeded_per_episode(ckpts):
+    kw = dict(opponents=None, episodes=4, seed=11, progress=False, policy="sample")
+    a = tools.evaluate(str(ckpts["a3c"]), **kw, workers=1)
+    b = tools.evaluate(str(ckpts["a3c"]), **kw, workers=2)
+    greedy = tools.evaluate(str(ckpts["a3c"]), **{**kw, "policy": "greedy"}, workers=1)
+    assert a["policy"] == "sample" and greedy["policy"] == "greedy"
+    assert [r["ret"] for r in a["results"]] == [r["ret"] for r in b["results"]]
+    assert [r["ret"] for r in a["results"]] != [r["ret"] for r in greedy["results"]]
+    with pytest.raises(ZenrlError, match="actor-critic"):
+        tools.evaluate(str(ckpts["cartpole"]), **kw, workers=1)
 
 
 # --------------------------------------------------------------------------------------------
