@@ -12,6 +12,7 @@ a plain ``Box`` space, ``"obs/<key>"`` for each key of a ``Dict`` space. Shapes:
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Mapping
 
 import gymnasium as gym
@@ -174,6 +175,19 @@ class ActorCritic(nn.Module):
         self.value_trunk = None if cfg.shared_torso else mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)[0]
         self.policy = nn.Linear(d, n_actions)
         self.value = nn.Linear(d, 1)
+        if cfg.orthogonal_init:
+            self._orthogonal_init()
+
+    def _orthogonal_init(self) -> None:
+        """Orthogonal weights, zero biases: gain sqrt(2) in the MLPs (conv layers keep their
+        init), 0.01 for the policy head (near-uniform first policy), 1 for the value head."""
+        trunks = [self.trunk] + ([self.value_trunk] if self.value_trunk is not None else [])
+        for layer in (m for t in trunks for m in t.modules() if isinstance(m, nn.Linear)):
+            nn.init.orthogonal_(layer.weight, gain=math.sqrt(2))
+            nn.init.zeros_(layer.bias)
+        for head, gain in ((self.policy, 0.01), (self.value, 1.0)):
+            nn.init.orthogonal_(head.weight, gain=gain)
+            nn.init.zeros_(head.bias)
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         z = self.encoder(obs)

@@ -349,3 +349,19 @@ def test_service_counts_rejections_and_checkpoint_round_trip(tmp_path):
     for s in (svc, again):
         assert s.handle("k/w0", _grad_msg(s.net, 1, -0.2).encode()) == APPLIED
     assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), again.net.state_dict().values()))
+
+
+def test_orthogonal_init_starts_near_uniform(tmp_path):
+    cfg = _cfg(tmp_path)
+    net = ActorCritic({"obs": ArraySpec((4,), "float32")}, 3, cfg.network).requires_grad_(False)
+    w = net.trunk[0].weight
+    # orthogonal rows (16 x 4 layer: the columns are orthonormal, scaled by sqrt(2))
+    np.testing.assert_allclose((w.T @ w).numpy(), 2.0 * np.eye(4), atol=1e-5)
+    assert float(net.policy.weight.abs().max()) < 0.05 and float(net.trunk[0].bias.abs().max()) == 0.0
+    x = torch.randn(64, 4) * 3
+    logits, _ = net({"obs": x})
+    probs = torch.softmax(logits, 1)
+    assert float((probs - 1 / 3).abs().max()) < 0.05
+    plain = ActorCritic({"obs": ArraySpec((4,), "float32")}, 3, _cfg(tmp_path, **{"network.orthogonal_init": False}).network)
+    plain.requires_grad_(False)
+    assert float(plain.trunk[0].bias.abs().max()) > 0.0
