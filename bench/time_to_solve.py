@@ -71,12 +71,14 @@ def finite(x: float) -> float | None:
 
 
 # --------------------------------------------------------------------------------------------
-def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path) -> dict[str, Any]:
+def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str] | None = None) -> dict[str, Any]:
     run_id = f"tts-{algo}-s{seed}-{os.getpid()}"
     cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(ROOT / "configs" / f"cartpole_{algo}.yaml"),
            "--seed", str(seed), "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
            "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={TARGET}",
            "--set", f"max_wall_s={cap_s}"]
+    for kv in sets or []:
+        cmd += ["--set", kv]
     t0 = time.monotonic()
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=cap_s + 300)
     s = json.loads((runs_dir / run_id / "summary.json").read_text())
@@ -177,17 +179,20 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="1 seed each and --cap-s 240")
     ap.add_argument("--cap-s", type=float, default=900.0, help="wall-clock cap per run (unsolved after it)")
     ap.add_argument("--sb3-eval-every", type=int, default=None,
-                    help="SB3 env steps between evaluations (default: 1000 for DQN, 4000 for A2C)")
+                    help="SB3 env steps between evaluations (default: 1000 for DQN; 2500 for A2C, about the env "
+                         "steps between two of zenrl A3C's evaluations: 0.5 s at ~5,000 steps/s)")
     ap.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (zenrl uses 1 per process)")
     ap.add_argument("--skip-sb3", action="store_true", help="only zenrl")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for the zenrl runs (repeatable), e.g. --set evaluator.interval_s=1")
     args = ap.parse_args()
     seeds = 1 if args.quick else args.seeds
     cap = min(args.cap_s, 240.0) if args.quick else args.cap_s
-    eval_every = args.sb3_eval_every or (1000 if args.algo == "apex" else 4000)
+    eval_every = args.sb3_eval_every or (1000 if args.algo == "apex" else 2500)
     zen, sb3 = [], []
     with tempfile.TemporaryDirectory(prefix="zenrl-tts-") as tmp:
         for s in range(seeds):
-            zen.append(run_zenrl(args.algo, s, cap, Path(tmp)))
+            zen.append(run_zenrl(args.algo, s, cap, Path(tmp), args.set))
             if not args.skip_sb3:
                 try:
                     sb3.append(run_sb3(args.algo, s, cap, eval_every, args.sb3_threads))
@@ -201,7 +206,7 @@ def main() -> None:
     result: dict[str, Any] = {
         "bench": "time_to_solve", "env": "CartPole-v1", "algo": args.algo, "target_return": TARGET,
         "eval_episodes": EVAL_EPISODES, "seeds": seeds, "quick": args.quick, "cap_s": cap,
-        "zenrl": {"config": f"configs/cartpole_{args.algo}.yaml", "median_solve_s": finite(z_med), "runs": zen},
+        "zenrl": {"config": f"configs/cartpole_{args.algo}.yaml", "overrides": args.set, "median_solve_s": finite(z_med), "runs": zen},
         "sb3": {"algo": "DQN" if args.algo == "apex" else "A2C",
                 "zoo_hyperparameters": ZOO_DQN if args.algo == "apex" else ZOO_A2C,
                 "eval_every_steps": eval_every, "torch_threads": args.sb3_threads,
