@@ -237,7 +237,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     keys = P.Keys(run)
     tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-learner-"))
     cfg = load_config(CONFIG, [f"learner.batch_size={BATCH}", f"transport.router={ep}", f"run_id={run}",
-                               f"runs_dir={tmp / 'runs'}", "learner.log_interval_s=1.0", "learner.device=cpu"])
+                               f"runs_dir={tmp / 'runs'}", "learner.log_interval_s=1.0", "learner.device=cpu", *args.set])
     out: dict[str, Any] = {"bench": "learner_throughput", "quick": bool(args.quick), "error": None}
     router = open_router([ep])
     procs = Procs(tmp)
@@ -306,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round")
     ap.add_argument("--profile", action="store_true", help="profile the learner even if it meets the target")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override (repeatable), e.g. --set learner.requests_in_flight=8")
     args = ap.parse_args(argv)
     stop_on_sigterm()
     return orchestrate(args)
