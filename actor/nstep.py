@@ -54,7 +54,24 @@ class NStepBuilder:
     def add(self, obs: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray, q_sa: np.ndarray,
             next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray) -> Emitted:
         """Record step t for every env. ``obs``: s_t (what was acted on); ``next_obs``: s_{t+1}
-        (the final observation for envs whose episode ended). All arrays have leading dim E."""
+        (the final observation for envs whose episode ended). All arrays have leading dim E.
+        Returns everything emitted, pending transitions first (see :meth:`add_split`)."""
+        parts = [e for e in self.add_split(obs, actions, rewards, q_sa, next_obs, terminated, truncated) if e is not None]
+        if not parts:
+            return Emitted({}, np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool))
+        if len(parts) == 1:
+            return parts[0]
+        data = {k: np.concatenate([p.data[k] for p in parts]) for k in parts[0].data}
+        return Emitted(data, np.concatenate([p.env for p in parts]), np.concatenate([p.q_sa for p in parts]),
+                       np.concatenate([p.pending for p in parts]))
+
+    def add_split(self, obs: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray, q_sa: np.ndarray,
+                  next_obs: dict[str, np.ndarray], terminated: np.ndarray,
+                  truncated: np.ndarray) -> tuple[Emitted | None, Emitted | None]:
+        """As :meth:`add`, but returns ``(pending, finished)`` separately (None where empty):
+        ``pending`` are mid-episode n-step transitions (``next_obs`` is what the actor acts on
+        next, so it bootstraps them from its next forward pass), ``finished`` those of episodes
+        that ended at this step."""
         n, E = self.n, self.E
         if self._obs is None:
             self._obs = {k: np.zeros((n, E) + v.shape[1:], v.dtype) for k, v in obs.items()}
@@ -66,7 +83,7 @@ class NStepBuilder:
         self._q[pos] = q_sa
         self.count += 1
         done = terminated | truncated
-        parts: list[tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]] = []
+        pending = finished = None
 
         full = np.flatnonzero((self.count == n) & ~done)
         if full.size:
@@ -74,33 +91,28 @@ class NStepBuilder:
             order = (start + np.arange(n)) % n
             R = self._disc @ self._rew[order][:, full]
             data = self._gather(start, full, next_obs, R, np.full(full.size, n, np.uint8), False, False)
-            parts.append((data, full, self._q[start, full], np.ones(full.size, bool)))
+            pending = Emitted(data, full, self._q[start, full], np.ones(full.size, bool))
             self.count[full] = n - 1
 
         ended = np.flatnonzero(done)
         if ended.size:
+            # every pending start of every ended env, in one gather: env e with c starts emits
+            # transitions with m = c, c-1, ..., 1 steps remaining
             counts = self.count[ended]
-            for m in range(int(counts.max()), 0, -1):  # starts with m steps remaining, all ended envs at once
-                envs = ended[counts >= m]
-                start = (self.t - m + 1) % n
-                order = (start + np.arange(m)) % n
-                R = self._disc[:m] @ self._rew[order][:, envs]
-                data = self._gather(start, envs, next_obs, R, np.full(envs.size, m, np.uint8),
-                                    terminated[envs], truncated[envs])
-                parts.append((data, envs, self._q[start, envs], np.zeros(envs.size, bool)))
+            envs = np.repeat(ended, counts)
+            first = np.cumsum(counts) - counts
+            m = (np.repeat(counts, counts) - (np.arange(envs.size) - np.repeat(first, counts))).astype(np.int64)
+            start = (self.t - m + 1) % n
+            k = np.arange(n)
+            window = self._rew[(start[:, None] + k) % n, envs[:, None]]
+            R = (window * np.where(k < m[:, None], self._disc, 0.0)).sum(axis=1)
+            data = self._gather(start, envs, next_obs, R, m.astype(np.uint8), terminated[envs], truncated[envs])
+            finished = Emitted(data, envs, self._q[start, envs], np.zeros(envs.size, bool))
             self.count[ended] = 0
         self.t += 1
+        return pending, finished
 
-        if not parts:
-            return Emitted({}, np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool))
-        if len(parts) == 1:
-            d, env, q, p = parts[0]
-            return Emitted(d, env, q, p)
-        data = {k: np.concatenate([p[0][k] for p in parts]) for k in parts[0][0]}
-        return Emitted(data, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
-                       np.concatenate([p[3] for p in parts]))
-
-    def _gather(self, start: int, envs: np.ndarray, next_obs: dict[str, np.ndarray], R: np.ndarray,
+    def _gather(self, start: int | np.ndarray, envs: np.ndarray, next_obs: dict[str, np.ndarray], R: np.ndarray,
                 m: np.ndarray, terminated: bool | np.ndarray, truncated: bool | np.ndarray) -> dict[str, np.ndarray]:
         K = envs.size
         out: dict[str, np.ndarray] = {}
@@ -110,7 +122,7 @@ class NStepBuilder:
         out["reward"] = R.astype(np.float32)
         for k, v in next_obs.items():
             out["next_" + k] = v[envs]
-        out["terminated"] = np.broadcast_to(np.asarray(terminated, bool), (K,)).copy()
-        out["truncated"] = np.broadcast_to(np.asarray(truncated, bool), (K,)).copy()
+        out["terminated"] = np.zeros(K, bool) if terminated is False else np.asarray(terminated, bool)
+        out["truncated"] = np.zeros(K, bool) if truncated is False else np.asarray(truncated, bool)
         out["n"] = m
         return out

@@ -30,7 +30,7 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ProtocolError, RemoteTimeout
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
-from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, num_actions,
+from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, num_actions,
                                    obs_spec, to_tensors)
 from zenrl.common.policy_io import wrap_selfplay
 from zenrl.common.replay_client import ZenohReplayClient
@@ -99,6 +99,8 @@ class ApexActor:
         self.n_actions = num_actions(self.envs.single_action_space)
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
         self.net = QNetwork(self.spec, self.n_actions, cfg.network).eval()
+        self._fast = NumpyQ.of(self.net)  # numpy forward for MLP nets (None: torch)
+        self._fast_version = -1
         if num_slots is None:
             self.eps = elastic_env_epsilons(slot, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         else:
@@ -123,6 +125,12 @@ class ApexActor:
         return np.abs(d["reward"] + disc * boot - em.q_sa).astype(np.float32)
 
     def _forward(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """float32[B, A] Q values of the acting network for flat observations."""
+        if self._fast is not None:
+            if self._fast_version != self.weights.version:
+                self._fast.load(self.net)
+                self._fast_version = self.weights.version
+            return self._fast(obs)
         with torch.no_grad():
             return self.net(to_tensors(obs)).numpy()
 
@@ -177,19 +185,15 @@ class ApexActor:
                 if explore.any():
                     actions[explore] = self.rng.integers(0, self.n_actions, int(explore.sum()))
                 res = self.envs.step(actions)
-                em = self.builder.add(obs, actions, res.rewards, q[ar, actions], res.next_obs, res.terminated, res.truncated)
-                if len(em):
-                    if em.pending.all():
-                        pending = em
-                    else:
-                        pending = _select(em, em.pending) if em.pending.any() else None
-                        done = _select(em, ~em.pending)
-                        boot = np.zeros(len(done), np.float64)
-                        tr = np.flatnonzero(done.data["truncated"] & ~done.data["terminated"])
-                        if tr.size:
-                            nxt = {k[len("next_"):]: v[tr] for k, v in done.data.items() if k.startswith("next_obs")}
-                            boot[tr] = self._forward(nxt).max(1)
-                        self._queue(done.data, self._priorities(done, boot))
+                pending, done = self.builder.add_split(obs, actions, res.rewards, q[ar, actions], res.next_obs,
+                                                       res.terminated, res.truncated)
+                if done is not None:
+                    boot = np.zeros(len(done), np.float64)
+                    tr = np.flatnonzero(done.data["truncated"] & ~done.data["terminated"])
+                    if tr.size:
+                        nxt = {k[len("next_"):]: v[tr] for k, v in done.data.items() if k.startswith("next_obs")}
+                        boot[tr] = self._forward(nxt).max(1)
+                    self._queue(done.data, self._priorities(done, boot))
                 obs = res.obs
                 steps += 1
                 self.env_steps += E
@@ -220,10 +224,6 @@ class ApexActor:
             "sent_transitions": self.sent_transitions, "sent_chunks": self.replay.sent_chunks,
             "failed_chunks": self.replay.failed_chunks, "undelivered_chunks": self.replay.undelivered_chunks,
             "backlog_chunks": self.replay.backlog, "weights_rejected": self.weights.rejected}).encode())
-
-
-def _select(em: Emitted, mask: np.ndarray) -> Emitted:
-    return Emitted({k: v[mask] for k, v in em.data.items()}, em.env[mask], em.q_sa[mask], em.pending[mask])
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | None = None, slot: int | None = None) -> None:

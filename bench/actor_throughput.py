@@ -139,14 +139,13 @@ BUCKETS = [
     ("gym env.step/reset called by EnvBatch.step", None, "gym"),  # from the callers table
     ("stack_flat (obs list -> array)", "actor/batch_env.py", "stack_flat"),
     ("q_forward (torch, incl. to_tensors)", "actor/service.py", "_forward"),
-    ("nstep_builder.add", "actor/nstep.py", "add"),
+    ("nstep_builder.add_split", "actor/nstep.py", "add_split"),
     ("priorities", "actor/service.py", "_priorities"),
     ("queue+flush (concat, encode, put)", "actor/service.py", "_queue"),
     ("replay_client.insert (encode + put)", "common/replay_client.py", "insert"),
     ("TransitionBatch.encode", "common/protocol.py", "encode"),
     ("zenoh put", "common/replay_client.py", "_put"),
     ("weights.maybe_load", "actor/service.py", "maybe_load"),
-    ("_select (split emitted)", "actor/service.py", "_select"),
     ("episode/stats report", "actor/service.py", "_report"),
 ]
 

@@ -163,6 +163,52 @@ class QNetwork(nn.Module):
         return self.q(h)
 
 
+class NumpyQ:
+    """A numpy copy of an MLP-only :class:`QNetwork` for acting on the CPU: flat observations
+    ``{name: array[B, ...]}`` -> float32[B, A], the same values as the network's forward (to
+    float32 rounding). For the small MLPs actors run, torch's per-op dispatch costs more than
+    the arithmetic (measured: 0.21 ms vs 0.07 ms for a [64, 64] dueling net on 64
+    observations). :meth:`of` gives None for networks with conv encoders; call :meth:`load`
+    after the network's weights change."""
+
+    def __init__(self, net: "QNetwork") -> None:
+        self.names = list(net.encoder.names)
+        self.act = np.tanh if isinstance(net.trunk[1], nn.Tanh) else None
+        self.dueling = net.dueling
+        self.load(net)
+
+    @staticmethod
+    def of(net: nn.Module) -> "NumpyQ | None":
+        if not isinstance(net, QNetwork) or not all(isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
+            return None
+        return NumpyQ(net)
+
+    def load(self, net: "QNetwork") -> None:
+        def wb(layer: nn.Linear) -> tuple[np.ndarray, np.ndarray]:
+            return (np.ascontiguousarray(layer.weight.detach().cpu().numpy().T, np.float32),
+                    layer.bias.detach().cpu().numpy().astype(np.float32))
+
+        self.layers = [wb(m) for m in net.trunk if isinstance(m, nn.Linear)]
+        self.heads = [wb(net.value), wb(net.advantage)] if self.dueling else [wb(net.q)]
+
+    def __call__(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
+        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) for n in self.names]
+        h = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        for w, b in self.layers:
+            h = h @ w
+            h += b
+            if self.act is None:
+                np.maximum(h, 0.0, out=h)
+            else:
+                self.act(h, out=h)
+        if not self.dueling:
+            (w, b), = self.heads
+            return h @ w + b
+        (wv, bv), (wa, ba) = self.heads
+        a = h @ wa + ba
+        return (h @ wv + bv) + (a - a.mean(axis=1, keepdims=True))
+
+
 class ActorCritic(nn.Module):
     """Policy and value: ``{name: tensor[B, ...]}`` -> (logits float32[B, A], value float32[B]).
     With ``cfg.shared_torso`` false the value head has its own MLP (``value_trunk``) on the shared

@@ -7,7 +7,8 @@ import torch
 from zenrl.actor.service import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import NetworkConfig
-from zenrl.common.networks import (QNetwork, arch_fingerprint, arrays_to_params, obs_spec, params_to_arrays)
+from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, obs_spec,
+                                   params_to_arrays)
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.dqn import double_dqn_target, dqn_loss
 
@@ -102,3 +103,34 @@ def test_arrays_to_params_names_the_bad_parameter():
     arrays[name] = np.zeros((3, 3), np.float32)
     with pytest.raises(ValueError, match=name):
         arrays_to_params(net, arrays)
+
+
+@pytest.mark.parametrize("activation,dueling", [("relu", True), ("tanh", False), ("relu", False)])
+def test_numpy_q_equals_torch_forward(activation, dueling):
+    spec = {"obs/lidar": ArraySpec((6,), "float32"), "obs/pose": ArraySpec((3,), "float32"),
+            "obs/grid": ArraySpec((2, 2), "float32")}
+    torch.manual_seed(0)
+    net = QNetwork(spec, 5, NetworkConfig(hidden=[32, 16], activation=activation, dueling=dueling)).eval()
+    fast = NumpyQ.of(net)
+    assert fast is not None
+    rng = np.random.default_rng(0)
+    obs = {k: rng.normal(size=(7, *v.shape)).astype(np.float32) for k, v in spec.items()}
+    with torch.no_grad():
+        ref = net({k: torch.from_numpy(v) for k, v in obs.items()}).numpy()
+    got = fast(obs)
+    assert got.dtype == np.float32 and got.shape == (7, 5)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    # new weights: stale until load() is called
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1)
+        ref2 = net({k: torch.from_numpy(v) for k, v in obs.items()}).numpy()
+    assert not np.allclose(fast(obs), ref2, atol=1e-3)
+    fast.load(net)
+    np.testing.assert_allclose(fast(obs), ref2, rtol=1e-5, atol=1e-5)
+
+
+def test_numpy_q_declines_conv_networks():
+    net = QNetwork({"obs": ArraySpec((36, 36, 3), "uint8")}, 3, NetworkConfig(hidden=[16]))
+    assert NumpyQ.of(net) is None
+    assert NumpyQ.of(QNetwork({"obs": ArraySpec((36, 36, 3), "uint8")}, 3, NetworkConfig(hidden=[16], conv=False))) is not None
