@@ -24,9 +24,10 @@ G = 0.9
 # --------------------------------------------------------------------------------------------
 # n-step returns
 # --------------------------------------------------------------------------------------------
-def test_nstep_returns_hand_computed():
-    # env 0: no episode end; env 1: terminated at t=1; env 2: truncated at t=0 (final value 7);
-    # env 3: terminated and truncated at t=2 (termination wins: no bootstrap)
+def _episode_ends():
+    """Rewards, terminated, truncated, final values and bootstrap of a 3-step, 4-env rollout:
+    env 0: no episode end; env 1: terminated at t=1; env 2: truncated at t=0 (final value 7);
+    env 3: terminated and truncated at t=2 (termination wins: its final value 1000 is ignored)."""
     r = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0], [3.0, 3.0, 3.0, 3.0]], np.float32)
     term = np.zeros((3, 4), bool)
     trunc = np.zeros((3, 4), bool)
@@ -35,8 +36,12 @@ def test_nstep_returns_hand_computed():
     term[2, 3] = trunc[2, 3] = True
     final = np.zeros((3, 4))
     final[0, 2] = 7.0
-    final[2, 3] = 1000.0  # must be ignored: terminated
-    boot = np.array([10.0, 20.0, 30.0, 40.0])
+    final[2, 3] = 1000.0
+    return r, term, trunc, final, np.array([10.0, 20.0, 30.0, 40.0])
+
+
+def test_nstep_returns_hand_computed():
+    r, term, trunc, final, boot = _episode_ends()
     R = nstep_returns(r, term, trunc, final, boot, G)
     assert R.dtype == np.float32 and R.shape == (3, 4)
     np.testing.assert_allclose(R[:, 0], [1 + G * 2 + G**2 * 3 + G**3 * 10, 2 + G * 3 + G**2 * 10, 3 + G * 10], rtol=1e-6)
@@ -48,20 +53,6 @@ def test_nstep_returns_hand_computed():
 def test_nstep_returns_one_step():
     R = nstep_returns(np.array([[1.0]]), np.array([[False]]), np.array([[False]]), np.zeros((1, 1)), np.array([2.0]), 0.5)
     assert R[0, 0] == pytest.approx(2.0)
-
-
-def _episode_ends():
-    """Rewards, terminated, truncated, final values and bootstrap of the hand-computed case."""
-    r = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 2.0, 2.0, 2.0], [3.0, 3.0, 3.0, 3.0]], np.float32)
-    term = np.zeros((3, 4), bool)
-    trunc = np.zeros((3, 4), bool)
-    term[1, 1] = True
-    trunc[0, 2] = True
-    term[2, 3] = trunc[2, 3] = True
-    final = np.zeros((3, 4))
-    final[0, 2] = 7.0
-    final[2, 3] = 1000.0
-    return r, term, trunc, final, np.array([10.0, 20.0, 30.0, 40.0])
 
 
 def test_gae_lambda_one_is_nstep_and_zero_is_td():
