@@ -31,7 +31,7 @@ from torch.nn import functional as F
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
-from zenrl.common.networks import ActorCritic, num_actions, obs_spec, to_tensors
+from zenrl.common.networks import ActorCritic, num_actions, obs_spec, sample_categorical, to_tensors
 
 log = logging.getLogger(__name__)
 
@@ -175,12 +175,6 @@ def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coe
     return grads, m
 
 
-def sample_actions(logits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Sample a ~ softmax(logits) per row (Gumbel-max). logits float[E, A] -> int64[E]."""
-    g = -np.log(-np.log(rng.random(logits.shape)))
-    return (logits + g).argmax(1).astype(np.int64)
-
-
 def _stack(steps: list[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.stack([s[k] for s in steps]) for k in steps[0]}
 
@@ -232,7 +226,7 @@ class A3CWorker:
                 self.weights.maybe_load()
             with torch.no_grad():
                 logits, _ = self.net(to_tensors(self._obs))
-            a = sample_actions(logits.numpy(), self.rng)
+            a = sample_categorical(logits.numpy(), self.rng)
             res = self.envs.step(a)
             obs_l.append(self._obs)
             act_l.append(a)

@@ -17,20 +17,11 @@ from zenrl.actor.service import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
-from zenrl.common.networks import ActorCritic, QNetwork, num_actions, obs_spec, to_tensors
-from zenrl.common.policy_io import sampled_actions
+from zenrl.common.networks import ActorCritic, QNetwork, num_actions, obs_spec
+from zenrl.common.policy_io import greedy_actions, sampled_actions
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
-
-
-def greedy_action(net: torch.nn.Module, obs: dict[str, np.ndarray]) -> np.ndarray:
-    """int64[E]: argmax Q for a Q network, argmax of the logits for an actor-critic."""
-    with torch.no_grad():
-        out = net(to_tensors(obs))
-        if isinstance(out, tuple):
-            out = out[0]
-        return out.argmax(1).numpy()
 
 
 def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: float = 0.0,
@@ -47,7 +38,7 @@ def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: floa
     n_act = num_actions(envs.single_action_space)
     rng = rng or np.random.default_rng(seed)
     while not finished.all():
-        a = sampled_actions(net, obs, rng) if sample else greedy_action(net, obs)
+        a = sampled_actions(net, obs, rng) if sample else greedy_actions(net, obs)
         if epsilon > 0:
             r = rng.random(E) < epsilon
             a[r] = rng.integers(0, n_act, int(r.sum()))

@@ -163,6 +163,12 @@ class QNetwork(nn.Module):
         return self.q(h)
 
 
+def sample_categorical(logits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Draw a ~ softmax(logits) per row (Gumbel-max). logits float[B, A] -> int64[B]."""
+    g = -np.log(-np.log(rng.random(logits.shape)))
+    return (logits + g).argmax(1).astype(np.int64)
+
+
 class NumpyQ:
     """A numpy copy of an MLP-only :class:`QNetwork` for acting on the CPU: flat observations
     ``{name: array[B, ...]}`` -> float32[B, A], the same values as the network's forward (to

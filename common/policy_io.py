@@ -26,7 +26,7 @@ import torch
 
 from zenrl.common.config import RunConfig, SelfPlayConfig, config_from_dict
 from zenrl.common.errors import CheckpointError
-from zenrl.common.networks import ActorCritic, QNetwork, flat_obs, num_actions, obs_spec
+from zenrl.common.networks import ActorCritic, QNetwork, flat_obs, num_actions, obs_spec, sample_categorical
 
 log = logging.getLogger(__name__)
 
@@ -120,9 +120,7 @@ def sampled_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray], rng: n
         raise ValueError("sampling actions needs an actor-critic (a3c) network; a Q network is greedy only")
     with torch.no_grad():
         logits = net({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()})[0]
-        p = torch.softmax(logits.double(), 1).numpy()
-    u = rng.random((p.shape[0], 1))
-    return np.minimum((np.cumsum(p, 1) < u).sum(1), p.shape[1] - 1).astype(np.int64)
+    return sample_categorical(logits.double().numpy(), rng)
 
 
 class GreedyPolicy:

@@ -5,11 +5,12 @@ import pytest
 import torch
 
 from zenrl.actor.batch_env import EnvBatch
-from zenrl.actor.evaluator import build_policy_net, greedy_action, play_episodes
+from zenrl.actor.evaluator import build_policy_net, play_episodes
 from zenrl.common.config import RunConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.networks import flat_obs
+from zenrl.common.policy_io import greedy_actions
 
 
 def _cfg(env: dict) -> RunConfig:
@@ -43,7 +44,7 @@ def test_match_outcomes_equal_a_hand_played_match(seed):
         obs, _ = env.reset(seed=10 * seed + i)
         total, done = 0.0, False
         while not done:
-            a = greedy_action(net, {k: v[None] for k, v in flat_obs(obs).items()})[0]
+            a = greedy_actions(net, {k: v[None] for k, v in flat_obs(obs).items()})[0]
             obs, r, term, trunc, info = env.step(a)
             total += r
             done = term or trunc
