@@ -1,128 +1,182 @@
-"""Vectorized n-step transition builder for E envs stepped together (Ape-X actors).
+"""n-step transitions and their initial priorities for E envs stepped together (Ape-X actors),
+built in blocks of K steps.
 
-For a start step ``j`` the emitted transition holds::
+For a start step ``j`` of env ``e`` the emitted transition holds::
 
     obs      = s_j                       action = a_j
     reward   = sum_{k=0}^{m-1} gamma^k r_{j+k}      n = m  (m <= n_step)
     next_obs = s_{j+m}                   terminated = whether the episode terminated at j+m-1
 
-``m = n_step`` in mid-episode; at an episode end every pending start is emitted with the
-steps that remain (``m < n_step``). ``terminated`` stops bootstrapping
-(``discount = gamma ** m * (1 - terminated)``); ``truncated`` bootstraps from ``next_obs``, which
-is then the episode's final observation.
+``m = n_step`` in mid-episode; when the episode ends within the n steps, ``m`` counts the steps
+that remain. ``terminated`` stops bootstrapping (``discount = gamma ** m * (1 - terminated)``);
+``truncated`` bootstraps from ``next_obs``, which is then the episode's final observation.
+
+Each step is only written into preallocated arrays (a few copies); the arithmetic runs once per
+block of K steps, vectorized over ``[K, E]``, so its ~50 numpy calls cost per block, not per
+step. The builder keeps ``K + n`` rows: a block's last starts need the n steps that follow
+them and the observation (and its Q values) after those.
+
+Initial priority: ``|reward + gamma^m (1 - terminated) V(next_obs) - Q(s_j, a_j)|`` with
+``V(s) = max_a Q(s, a)`` of the acting network, taken from the forward pass made when the actor
+acted on ``s``. A transition whose window ends in a truncation bootstraps from the final
+observation, which nobody acted on: for those the caller's ``value_fn`` runs one extra forward.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 
 @dataclass
-class Emitted:
-    """Transitions emitted by one :meth:`NStepBuilder.add`. ``data`` fields have leading dim K;
-    ``env`` int64[K] says which env each came from; ``q_sa`` float32[K] is Q(s_j, a_j) as
-    computed when acting (for the initial priority); ``pending`` bool[K] marks transitions whose
-    ``next_obs`` is the obs the actor will act on next (bootstrap from the next forward pass)."""
+class Block:
+    """Transitions emitted together: ``data`` fields have leading dim B (``obs*``, ``action``
+    int64, ``reward`` float32, ``next_obs*``, ``terminated``/``truncated`` bool, ``n`` uint8);
+    ``priorities`` float32[B] (initial, see the module docstring); ``env`` int64[B] the env of
+    each."""
 
     data: dict[str, np.ndarray]
+    priorities: np.ndarray
     env: np.ndarray
-    q_sa: np.ndarray
-    pending: np.ndarray
 
     def __len__(self) -> int:
         return int(self.env.shape[0])
 
 
-class NStepBuilder:
-    def __init__(self, num_envs: int, n_step: int, gamma: float) -> None:
+ValueFn = Callable[[dict[str, np.ndarray]], np.ndarray]
+
+
+class NStepBlocks:
+    """Records one batched step per :meth:`add`; every ``block_steps`` steps (once the n steps
+    after them are known) :meth:`add` returns a :class:`Block` of ``block_steps * E``
+    transitions, otherwise None."""
+
+    def __init__(self, num_envs: int, n_step: int, gamma: float, block_steps: int) -> None:
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1, got {n_step}")
-        self.E, self.n, self.gamma = num_envs, n_step, gamma
-        self.count = np.zeros(num_envs, np.int64)
-        self.t = 0
+        if block_steps < 1:
+            raise ValueError(f"block_steps must be >= 1, got {block_steps}")
+        self.E, self.n, self.K, self.gamma = num_envs, n_step, block_steps, gamma
+        self.rows = block_steps + n_step  # obs rows 0..K+n-1 hold s_t; step rows the same t
+        self.t = 0                       # rows filled
+        E, R = num_envs, self.rows
         self._obs: dict[str, np.ndarray] | None = None
-        self._act = np.zeros((n_step, num_envs), np.int64)
-        self._rew = np.zeros((n_step, num_envs), np.float64)
-        self._q = np.zeros((n_step, num_envs), np.float32)
-        self._disc = gamma ** np.arange(n_step, dtype=np.float64)
+        self._final: dict[str, np.ndarray] | None = None
+        self._act = np.zeros((R, E), np.int64)
+        self._rew = np.zeros((R, E), np.float64)
+        self._q_sa = np.zeros((R, E), np.float64)
+        self._v = np.zeros((R, E), np.float64)       # max_a Q(s_t, a)
+        self._term = np.zeros((R, E), bool)
+        self._trunc = np.zeros((R, E), bool)
+        self._disc = gamma ** np.arange(n_step + 1, dtype=np.float64)
+        self._ar = np.arange(num_envs)
+
+    def add(self, obs: dict[str, np.ndarray], q: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
+            next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray,
+            value_fn: ValueFn) -> Block | None:
+        """Record step t for every env. ``obs``: s_t (what was acted on, flat arrays [E, ...]);
+        ``q``: float[E, A] the Q values it was acted on with; ``actions`` int[E]; ``rewards``
+        float[E]; ``next_obs``: s_{t+1} (the final observation where the episode ended; only
+        those are read); ``terminated``/``truncated`` bool[E]; ``value_fn`` maps final
+        observations [B, ...] to V float[B], called only when a block has truncated windows."""
+        t = self.t
+        if self._obs is None:
+            self._obs = {k: np.zeros((self.rows,) + v.shape, v.dtype) for k, v in obs.items()}
+            self._final = {k: np.zeros((self.rows,) + v.shape, v.dtype) for k, v in obs.items()}
+        for k, v in obs.items():
+            self._obs[k][t] = v
+        self._q_sa[t] = q[self._ar, actions]
+        self._v[t] = q.max(1)
+        self._act[t] = actions
+        self._rew[t] = rewards
+        self._term[t] = terminated
+        self._trunc[t] = truncated
+        done = terminated | truncated
+        if done.any():
+            idx = np.flatnonzero(done)
+            for k, v in next_obs.items():
+                self._final[k][t, idx] = v[idx]
+        self.t += 1
+        if self.t < self.rows:
+            return None
+        # s_{K-1+n} and its V are in row K+n-1 = rows-1: every start 0..K-1 is complete
+        block = self._emit(self.K, value_fn)
+        self._shift(self.K)
+        return block
+
+    def flush(self, value_fn: ValueFn) -> Block | None:
+        """Emit every start whose n steps and the observation after them are recorded (at
+        shutdown); starts nearer the end are dropped."""
+        ready = self.t - self.n
+        if ready <= 0:
+            return None
+        block = self._emit(ready, value_fn)
+        self._shift(ready)
+        return block
 
     def reset(self) -> None:
-        self.count[:] = 0
+        """Forget everything recorded (the envs were reset)."""
+        self.t = 0
 
-    def add(self, obs: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray, q_sa: np.ndarray,
-            next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray) -> Emitted:
-        """Record step t for every env. ``obs``: s_t (what was acted on); ``next_obs``: s_{t+1}
-        (the final observation for envs whose episode ended). All arrays have leading dim E.
-        Returns everything emitted, pending transitions first (see :meth:`add_split`)."""
-        parts = [e for e in self.add_split(obs, actions, rewards, q_sa, next_obs, terminated, truncated) if e is not None]
-        if not parts:
-            return Emitted({}, np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool))
-        if len(parts) == 1:
-            return parts[0]
-        data = {k: np.concatenate([p.data[k] for p in parts]) for k in parts[0].data}
-        return Emitted(data, np.concatenate([p.env for p in parts]), np.concatenate([p.q_sa for p in parts]),
-                       np.concatenate([p.pending for p in parts]))
+    def _shift(self, k: int) -> None:
+        keep = slice(k, self.t)
+        left = self.t - k
+        for arrs in (self._obs, self._final):
+            for a in arrs.values():
+                a[:left] = a[keep]
+        for a in (self._act, self._rew, self._q_sa, self._v, self._term, self._trunc):
+            a[:left] = a[keep]
+        self.t = left
 
-    def add_split(self, obs: dict[str, np.ndarray], actions: np.ndarray, rewards: np.ndarray, q_sa: np.ndarray,
-                  next_obs: dict[str, np.ndarray], terminated: np.ndarray,
-                  truncated: np.ndarray) -> tuple[Emitted | None, Emitted | None]:
-        """As :meth:`add`, but returns ``(pending, finished)`` separately (None where empty):
-        ``pending`` are mid-episode n-step transitions (``next_obs`` is what the actor acts on
-        next, so it bootstraps them from its next forward pass), ``finished`` those of episodes
-        that ended at this step."""
+    def _emit(self, K: int, value_fn: ValueFn) -> Block:
+        """Starts 0..K-1 of every env (steps j..j+n-1 and row j+n must be recorded, unless the
+        episode ended earlier)."""
         n, E = self.n, self.E
-        if self._obs is None:
-            self._obs = {k: np.zeros((n, E) + v.shape[1:], v.dtype) for k, v in obs.items()}
-        pos = self.t % n
-        for k, v in obs.items():
-            self._obs[k][pos] = v
-        self._act[pos] = actions
-        self._rew[pos] = rewards
-        self._q[pos] = q_sa
-        self.count += 1
-        done = terminated | truncated
-        pending = finished = None
-
-        full = np.flatnonzero((self.count == n) & ~done)
-        if full.size:
-            start = (self.t - n + 1) % n
-            order = (start + np.arange(n)) % n
-            R = self._disc @ self._rew[order][:, full]
-            data = self._gather(start, full, next_obs, R, np.full(full.size, n, np.uint8), False, False)
-            pending = Emitted(data, full, self._q[start, full], np.ones(full.size, bool))
-            self.count[full] = n - 1
-
-        ended = np.flatnonzero(done)
-        if ended.size:
-            # every pending start of every ended env, in one gather: env e with c starts emits
-            # transitions with m = c, c-1, ..., 1 steps remaining
-            counts = self.count[ended]
-            envs = np.repeat(ended, counts)
-            first = np.cumsum(counts) - counts
-            m = (np.repeat(counts, counts) - (np.arange(envs.size) - np.repeat(first, counts))).astype(np.int64)
-            start = (self.t - m + 1) % n
-            k = np.arange(n)
-            window = self._rew[(start[:, None] + k) % n, envs[:, None]]
-            R = (window * np.where(k < m[:, None], self._disc, 0.0)).sum(axis=1)
-            data = self._gather(start, envs, next_obs, R, m.astype(np.uint8), terminated[envs], truncated[envs])
-            finished = Emitted(data, envs, self._q[start, envs], np.zeros(envs.size, bool))
-            self.count[ended] = 0
-        self.t += 1
-        return pending, finished
-
-    def _gather(self, start: int | np.ndarray, envs: np.ndarray, next_obs: dict[str, np.ndarray], R: np.ndarray,
-                m: np.ndarray, terminated: bool | np.ndarray, truncated: bool | np.ndarray) -> dict[str, np.ndarray]:
-        K = envs.size
-        out: dict[str, np.ndarray] = {}
-        for k, buf in self._obs.items():
-            out[k] = buf[start, envs]
-        out["action"] = self._act[start, envs]
-        out["reward"] = R.astype(np.float32)
-        for k, v in next_obs.items():
-            out["next_" + k] = v[envs]
-        out["terminated"] = np.zeros(K, bool) if terminated is False else np.asarray(terminated, bool)
-        out["truncated"] = np.zeros(K, bool) if truncated is False else np.asarray(truncated, bool)
-        out["n"] = m
-        return out
+        R = np.zeros((K, E))
+        m = np.zeros((K, E), np.int64)
+        alive = np.ones((K, E), bool)        # window still inside the episode
+        end_row = np.zeros((K, E), np.int64)  # row of the step that ended it, where it ended
+        term = np.zeros((K, E), bool)
+        trunc = np.zeros((K, E), bool)
+        starts = np.arange(K)[:, None]
+        for k in range(n):
+            rows = slice(k, k + K)
+            R += np.where(alive, self._disc[k] * self._rew[rows], 0.0)
+            m += alive
+            te, tr = self._term[rows], self._trunc[rows]
+            ends = alive & (te | tr)
+            term |= ends & te
+            trunc |= ends & tr & ~te
+            end_row = np.where(ends, starts + k, end_row)
+            alive &= ~ends
+        ended = ~alive
+        j = np.broadcast_to(starts, (K, E)).ravel()
+        env = np.broadcast_to(np.arange(E), (K, E)).ravel()
+        flat_ended = ended.ravel()
+        # next_obs: s_{j+n} in mid-episode, the stored final observation where the episode ended
+        nxt_row = np.where(flat_ended, end_row.ravel(), j + n)
+        data: dict[str, np.ndarray] = {}
+        e_idx = np.flatnonzero(flat_ended)
+        for key, buf in self._obs.items():
+            data[key] = buf[:K].reshape((K * E,) + buf.shape[2:]).copy()  # the rows are reused
+            nxt = buf[nxt_row, env]
+            if e_idx.size:
+                nxt[e_idx] = self._final[key][nxt_row[e_idx], env[e_idx]]
+            data["next_" + key] = nxt
+        data["action"] = self._act[:K].ravel().copy()
+        data["reward"] = R.ravel().astype(np.float32)
+        term_f, trunc_f = term.ravel(), trunc.ravel()
+        data["terminated"] = term_f
+        data["truncated"] = trunc_f
+        m_f = m.ravel()
+        data["n"] = m_f.astype(np.uint8)
+        # bootstrap values: V(s_{j+n}) from acting, V(final) via value_fn where truncated, 0 where terminated
+        boot = self._v[nxt_row, env]
+        boot[flat_ended] = 0.0
+        tr_idx = np.flatnonzero(trunc_f)
+        if tr_idx.size:
+            boot[tr_idx] = value_fn({k[len("next_"):]: data[k][tr_idx] for k in data if k.startswith("next_")})
+        prio = np.abs(R.ravel() + self._disc[m_f] * boot - self._q_sa[:K].ravel()).astype(np.float32)
+        return Block(data, prio, env.copy())

@@ -2,8 +2,9 @@
 step, per-env epsilon from the Ape-X ladder, n-step transitions with initial priorities, chunks
 published to the replay, the newest weights taken between steps (never blocking).
 
-Priorities reuse the Q values computed for acting: a transition whose ``next_obs`` is the
-observation acted on at the next step is bootstrapped from that step's forward pass
+Transitions and their initial priorities are built in blocks of ``ceil(chunk_size / E)`` steps
+(actor/nstep.py), one chunk per block. Priorities reuse the Q values computed for acting: a
+transition is bootstrapped from the forward pass made when the actor acted on its ``next_obs``
 (``max_a Q(s', a)``, the actor has no target network); only transitions that end in a truncated
 episode need an extra forward pass on their final observation.
 """
@@ -23,7 +24,7 @@ import numpy as np
 import torch
 
 from zenrl.actor.batch_env import EnvBatch
-from zenrl.actor.nstep import Emitted, NStepBuilder
+from zenrl.actor.nstep import Block, NStepBlocks
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.slots import claim_slot
 from zenrl.common import protocol as P
@@ -106,23 +107,15 @@ class ApexActor:
         else:
             self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
-        self.builder = NStepBuilder(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma)
-        self.gamma = cfg.learner.gamma
+        self.builder = NStepBlocks(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma,
+                                   block_steps=-(-acfg.chunk_size // acfg.envs_per_actor))
         self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s,
                                         cfg.transport.max_message_bytes, acfg.backlog_chunks)
         self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
         self.env_steps = 0
-        self._chunk: list[tuple[dict[str, np.ndarray], np.ndarray]] = []
-        self._chunk_len = 0
         self._ep_returns: list[float] = []
         self._ep_lengths: list[int] = []
         self.sent_transitions = 0
-
-    # -- priorities ---------------------------------------------------------------------------
-    def _priorities(self, em: Emitted, boot: np.ndarray) -> np.ndarray:
-        d = em.data
-        disc = self.gamma ** d["n"].astype(np.float64) * (1.0 - d["terminated"])
-        return np.abs(d["reward"] + disc * boot - em.q_sa).astype(np.float32)
 
     def _forward(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """float32[B, A] Q values of the acting network for flat observations."""
@@ -134,24 +127,16 @@ class ApexActor:
         with torch.no_grad():
             return self.net(to_tensors(obs)).numpy()
 
-    def _queue(self, data: dict[str, np.ndarray], prio: np.ndarray) -> None:
-        if prio.size == 0:
-            return
-        self._chunk.append((data, prio))
-        self._chunk_len += prio.size
-        if self._chunk_len >= self.cfg.actor.chunk_size:
-            self._flush()
+    def _values(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return self._forward(obs).max(1)
 
-    def _flush(self) -> None:
-        if not self._chunk:
+    def _send(self, block: Block | None) -> None:
+        """One chunk per block (``block_steps * E`` transitions: chunk_size rounded up to whole
+        batched steps)."""
+        if block is None or len(block) == 0:
             return
-        data = {k: np.concatenate([c[0][k] for c in self._chunk]) for k in self._chunk[0][0]}
-        prio = np.concatenate([c[1] for c in self._chunk])
-        self._chunk, self._chunk_len = [], 0
-        cs = self.cfg.actor.chunk_size
-        for i in range(0, prio.size, cs):
-            self.replay.insert({k: v[i:i + cs] for k, v in data.items()}, prio[i:i + cs], self.weights.version)
-        self.sent_transitions += prio.size
+        self.replay.insert(block.data, block.priorities, self.weights.version)
+        self.sent_transitions += len(block)
 
     # -- main loop ----------------------------------------------------------------------------
     def run(self, stop: threading.Event, max_steps: int | None = None) -> None:
@@ -162,9 +147,7 @@ class ApexActor:
             log.info("actor %s starts with weights version %d", self.id, self.weights.version)
         log.info("actor %s slot %d, %d envs, epsilon %.4g..%.4g", self.id, self.slot, len(self.eps), self.eps.min(), self.eps.max())
         obs = self.envs.reset()
-        pending: Emitted | None = None
         E = self.envs.num_envs
-        ar = np.arange(E)
         last_report = time.monotonic()
         steps = 0
         poll = self.cfg.actor.weights_poll_steps
@@ -177,23 +160,13 @@ class ApexActor:
                 if steps % poll == 0:
                     self.weights.maybe_load()
                 q = self._forward(obs)
-                if pending is not None:  # bootstrap last step's transitions from this forward pass
-                    self._queue(pending.data, self._priorities(pending, q[pending.env].max(1)))
-                    pending = None
                 actions = q.argmax(1)
                 explore = self.rng.random(E) < self.eps
                 if explore.any():
                     actions[explore] = self.rng.integers(0, self.n_actions, int(explore.sum()))
                 res = self.envs.step(actions)
-                pending, done = self.builder.add_split(obs, actions, res.rewards, q[ar, actions], res.next_obs,
-                                                       res.terminated, res.truncated)
-                if done is not None:
-                    boot = np.zeros(len(done), np.float64)
-                    tr = np.flatnonzero(done.data["truncated"] & ~done.data["terminated"])
-                    if tr.size:
-                        nxt = {k[len("next_"):]: v[tr] for k, v in done.data.items() if k.startswith("next_obs")}
-                        boot[tr] = self._forward(nxt).max(1)
-                    self._queue(done.data, self._priorities(done, boot))
+                self._send(self.builder.add(obs, q, actions, res.rewards, res.next_obs, res.terminated,
+                                            res.truncated, self._values))
                 obs = res.obs
                 steps += 1
                 self.env_steps += E
@@ -204,7 +177,7 @@ class ApexActor:
                     self._report(eps_pub, stats_pub, now - last_report)
                     last_report = now
         finally:
-            self._flush()
+            self._send(self.builder.flush(self._values))
             left = self.replay.flush_backlog()
             if left:
                 self.replay.undelivered_chunks += left

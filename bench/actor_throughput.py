@@ -138,10 +138,10 @@ BUCKETS = [
     ("env_step (EnvBatch.step, incl. gym + stacking)", "actor/batch_env.py", "step"),
     ("gym env.step/reset called by EnvBatch.step", None, "gym"),  # from the callers table
     ("stack_flat (obs list -> array)", "actor/batch_env.py", "stack_flat"),
-    ("q_forward (torch, incl. to_tensors)", "actor/service.py", "_forward"),
-    ("nstep_builder.add_split", "actor/nstep.py", "add_split"),
-    ("priorities", "actor/service.py", "_priorities"),
-    ("queue+flush (concat, encode, put)", "actor/service.py", "_queue"),
+    ("q_forward (numpy or torch)", "actor/service.py", "_forward"),
+    ("n-step blocks: record each step + emit (incl. priorities)", "actor/nstep.py", "add"),
+    ("n-step blocks: emit (per block)", "actor/nstep.py", "_emit"),
+    ("send (encode, put)", "actor/service.py", "_send"),
     ("replay_client.insert (encode + put)", "common/replay_client.py", "insert"),
     ("TransitionBatch.encode", "common/protocol.py", "encode"),
     ("zenoh put", "common/replay_client.py", "_put"),
@@ -209,7 +209,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     keys = P.Keys(run)
     tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-actor-"))
     overrides = [f"actor.envs_per_actor={ENVS}", f"transport.router={ep}", f"run_id={run}",
-                 f"runs_dir={tmp / 'runs'}"]
+                 f"runs_dir={tmp / 'runs'}"] + list(args.set)
     cfg = load_config(CONFIG, overrides)
     out: dict[str, Any] = {"bench": "actor_throughput", "quick": bool(args.quick), "error": None}
     router = open_router([ep])
@@ -286,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round")
     ap.add_argument("--profile", action="store_true", help="profile the actor even if it meets the target")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override (repeatable), e.g. --set actor.chunk_size=1024")
     args = ap.parse_args(argv)
     stop_on_sigterm()
     return orchestrate(args)

@@ -82,7 +82,7 @@ class ActorConfig(_Section):
     num_actors: int = Field(2, ge=1, description="Number of actor processes `zenrl run` starts.")
     envs_per_actor: int = Field(16, ge=1, description="Environments per actor process, stepped as a batch.")
     n_step: int = Field(3, ge=1, description="n of the n-step returns built on the actor.")
-    chunk_size: int = Field(256, ge=1, description="Transitions per message sent to the replay (per-message costs dominate below ~256).")
+    chunk_size: int = Field(256, ge=1, description="Transitions per message sent to the replay, rounded up to whole batched steps (a multiple of envs_per_actor); per-message costs dominate below ~256.")
     eps_base: float = Field(0.4, gt=0, le=1, description="Ape-X epsilon ladder: slot i of N uses eps_base ** (1 + eps_alpha * i / (N - 1)).")
     eps_alpha: float = Field(7.0, ge=0, description="Ape-X epsilon ladder exponent range.")
     slot: Optional[int] = Field(None, ge=0, description="Fixed exploration slot (default: assigned by the launcher / the running system).")

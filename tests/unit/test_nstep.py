@@ -1,9 +1,9 @@
-"""n-step builder against hand-computed and brute-force returns."""
+"""n-step blocks against hand-computed and brute-force returns and priorities."""
 
 import numpy as np
 import pytest
 
-from zenrl.actor.nstep import NStepBuilder
+from zenrl.actor.nstep import NStepBlocks
 from zenrl.common.exploration import apex_epsilon, env_epsilons
 
 
@@ -11,85 +11,142 @@ def _obs(x):
     return {"obs": np.asarray(x, np.float32).reshape(-1, 1)}
 
 
+def _no_values(obs):
+    raise AssertionError("no truncated window expected")
+
+
+def _step(b, t, q, reward, nxt, term=False, trunc=False, value_fn=_no_values):
+    return b.add(_obs([t]), np.asarray(q, np.float64).reshape(1, -1), np.array([0]), np.array([reward]),
+                 _obs([nxt]), np.array([term]), np.array([trunc]), value_fn)
+
+
 def test_hand_computed_mid_episode():
-    b = NStepBuilder(1, 3, 0.5)
-    outs = []
-    for t in range(4):
-        outs.append(b.add(_obs([t]), np.array([t]), np.array([1.0 * (t + 1)]), np.array([0.0]),
-                          _obs([t + 1]), np.array([False]), np.array([False])))
-    assert [len(o) for o in outs] == [0, 0, 1, 1]
-    e = outs[2]
-    assert e.data["obs"][0, 0] == 0 and e.data["action"][0] == 0
-    assert e.data["reward"][0] == pytest.approx(1 + 0.5 * 2 + 0.25 * 3)
-    assert e.data["next_obs"][0, 0] == 3 and e.data["n"][0] == 3
-    assert not e.data["terminated"][0] and e.pending[0]
-    assert outs[3].data["reward"][0] == pytest.approx(2 + 0.5 * 3 + 0.25 * 4)
+    """One env, n = 3, gamma 0.5, blocks of 2 steps: the first block comes out at step 5
+    (starts 0 and 1 need steps up to 3 and V(s_4))."""
+    b = NStepBlocks(1, 3, 0.5, block_steps=2)
+    outs = [_step(b, t, [10.0 * t, 0.0], 1.0 * (t + 1), t + 1) for t in range(5)]
+    assert [o is None for o in outs] == [True, True, True, True, False]
+    blk = outs[4]
+    assert len(blk) == 2 and list(blk.data["obs"][:, 0]) == [0, 1] and list(blk.data["next_obs"][:, 0]) == [3, 4]
+    R0, R1 = 1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3 + 0.25 * 4
+    np.testing.assert_allclose(blk.data["reward"], [R0, R1])
+    assert list(blk.data["n"]) == [3, 3] and not blk.data["terminated"].any() and not blk.data["truncated"].any()
+    # priority |R + gamma^3 V(s_{j+3}) - Q(s_j, a_j)|, V(s_t) = 10 t, Q(s_j, 0) = 10 j
+    np.testing.assert_allclose(blk.priorities, [abs(R0 + 0.125 * 30 - 0), abs(R1 + 0.125 * 40 - 10)], rtol=1e-6)
 
 
 @pytest.mark.parametrize("terminated", [True, False])
 def test_episode_shorter_than_n(terminated):
-    b = NStepBuilder(1, 5, 0.9)
-    b.add(_obs([0]), np.array([0]), np.array([1.0]), np.array([0.0]), _obs([1]), np.array([False]), np.array([False]))
-    e = b.add(_obs([1]), np.array([1]), np.array([2.0]), np.array([0.0]), _obs([99]),
-              np.array([terminated]), np.array([not terminated]))
-    assert len(e) == 2
-    by_start = {int(o): i for i, o in enumerate(e.data["obs"][:, 0])}
-    i0, i1 = by_start[0], by_start[1]
-    assert e.data["reward"][i0] == pytest.approx(1 + 0.9 * 2) and e.data["n"][i0] == 2
-    assert e.data["reward"][i1] == pytest.approx(2) and e.data["n"][i1] == 1
-    assert (e.data["next_obs"][:, 0] == 99).all()   # the final observation
-    assert (e.data["terminated"] == terminated).all() and (e.data["truncated"] == (not terminated)).all()
-    assert not e.pending.any()
-    # the next episode starts clean
-    e = b.add(_obs([5]), np.array([0]), np.array([1.0]), np.array([0.0]), _obs([6]), np.array([False]), np.array([False]))
-    assert len(e) == 0
+    """An episode of two steps with n = 5: both starts stop at its end, bootstrap from the final
+    observation only when truncated, and the next episode's steps are not mixed in."""
+    asked = []
+
+    def values(obs):
+        asked.append(obs["obs"][:, 0].tolist())
+        return np.full(len(obs["obs"]), 7.0)
+
+    b = NStepBlocks(1, 5, 0.9, block_steps=2)
+    _step(b, 0, [0.5, 0.0], 1.0, 1, value_fn=values)
+    _step(b, 1, [0.0, 0.0], 2.0, 99, term=terminated, trunc=not terminated, value_fn=values)
+    outs = [_step(b, t, [0.0, 0.0], 100.0, t + 1, value_fn=values) for t in range(2, 7)]
+    blk = outs[-1]
+    assert blk is not None and list(blk.data["obs"][:, 0]) == [0, 1]
+    np.testing.assert_allclose(blk.data["reward"], [1 + 0.9 * 2, 2])
+    assert list(blk.data["n"]) == [2, 1]
+    assert (blk.data["next_obs"][:, 0] == 99).all()   # the final observation
+    assert (blk.data["terminated"] == terminated).all() and (blk.data["truncated"] == (not terminated)).all()
+    boot = 0.0 if terminated else 7.0
+    np.testing.assert_allclose(blk.priorities, [abs(2.8 + 0.81 * boot - 0.5), abs(2 + 0.9 * boot)], rtol=1e-6)
+    assert asked == ([] if terminated else [[99.0, 99.0]])
 
 
-def _reference(obs, act, rew, term, trunc, n, gamma):
-    """Brute force, one env: every start j, summing until n steps or the episode end."""
+def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value):
+    """Brute force, per env and start j < T - n: (obs id, action, R, next obs id, m,
+    terminated, truncated, priority). Obs id of s_t of env e is 10 t + e; a final observation
+    after step t is 100000 + 10 (t + 1) + e."""
     out = []
-    T = len(rew)
-    ep_end = [t for t in range(T) if term[t] or trunc[t]]
-    for j in range(T):
-        end = next((t for t in ep_end if t >= j), None)
-        last = min(j + n - 1, end if end is not None else T + 10)
-        if last >= T:
-            continue  # not emitted yet
-        m = last - j + 1
-        R = sum(gamma ** k * rew[j + k] for k in range(m))
-        done_here = end is not None and last == end
-        out.append((obs[j], act[j], round(R, 4), obs[last + 1], m, bool(term[last]) if done_here else False))
+    for e in range(E):
+        for j in range(T - n):
+            R, m, end = 0.0, 0, None
+            for k in range(n):
+                R += gamma ** k * rew[j + k, e]
+                m += 1
+                if term[j + k, e] or trunc[j + k, e]:
+                    end = j + k
+                    break
+            te = bool(end is not None and term[end, e])
+            tr = bool(end is not None and trunc[end, e] and not te)
+            if end is None:
+                nxt, boot = 10 * (j + n) + e, q[j + n, e].max()
+            else:
+                nxt = 100000 + 10 * (end + 1) + e
+                boot = 0.0 if te else final_value(nxt)
+            prio = abs(R + gamma ** m * boot - q[j, e, act[j, e]])
+            out.append((10 * j + e, int(act[j, e]), R, nxt, m, te, tr, prio))
     return sorted(out)
 
 
-def test_against_brute_force_many_envs():
-    rng = np.random.default_rng(0)
-    E, T, n, gamma = 4, 60, 3, 0.9
+@pytest.mark.parametrize("E,T,n,K", [(4, 60, 3, 5), (3, 41, 1, 1), (2, 50, 5, 16), (5, 30, 3, 64)])
+def test_against_brute_force(E, T, n, K):
+    """Every start that has its n steps recorded comes out exactly once (blocks while running,
+    the rest at flush), equal to the brute force, priorities included."""
+    rng = np.random.default_rng(E * 1000 + T)
+    gamma = 0.9
     rew = rng.normal(size=(T, E))
     term = rng.random((T, E)) < 0.08
     trunc = (rng.random((T, E)) < 0.05) & ~term
-    # observation ids: unique per (t, env); "final" observations are distinct ids
+    q = rng.normal(size=(T + 1, E, 3))
+    act = rng.integers(0, 3, (T, E))
     obs_id = np.arange(T + 1)[:, None] * 10 + np.arange(E)[None, :]
-    final_id = 100000 + obs_id
-    b = NStepBuilder(E, n, gamma)
-    got = [[] for _ in range(E)]
+    final_value = lambda ids: np.asarray(ids, np.float64) * 1e-5  # noqa: E731
+    b = NStepBlocks(E, n, gamma, block_steps=K)
+    blocks = []
     for t in range(T):
-        done = term[t] | trunc[t]
-        nxt = np.where(done, final_id[t + 1], obs_id[t + 1])
-        e = b.add(_obs(obs_id[t]), obs_id[t] % 7, rew[t], np.zeros(E), _obs(nxt), term[t], trunc[t])
-        for k in range(len(e)):
-            got[e.env[k]].append((int(e.data["obs"][k, 0]), int(e.data["action"][k]), round(float(e.data["reward"][k]), 4),
-                                  int(e.data["next_obs"][k, 0]), int(e.data["n"][k]), bool(e.data["terminated"][k])))
-    for env in range(E):
-        done = term[:, env] | trunc[:, env]
-        nxt_seq = np.where(np.r_[done, False], np.r_[final_id[1:, env], 0], np.r_[obs_id[1:, env], 0])
-        # reference next_obs of a transition ending at step `last` is the obs after `last`
-        seq_obs = list(obs_id[:T, env])
-        ref = _reference(seq_obs + [None], [o % 7 for o in seq_obs], rew[:, env], term[:, env], trunc[:, env], n, gamma)
-        ref = [(o, a, R, int(nxt_seq[o // 10 + m - 1]), m, te) for (o, a, R, _, m, te) in ref]
-        got_f = sorted((o, a, round(R, 4), nx, m, te) for (o, a, R, nx, m, te) in got[env])
-        assert [(g[0], g[4], g[5], g[3]) for g in got_f] == [(r[0], r[4], r[5], r[3]) for r in ref]
-        np.testing.assert_allclose([g[2] for g in got_f], [r[2] for r in ref], atol=1e-3)
+        nxt = np.where(term[t] | trunc[t], 100000 + obs_id[t + 1], -1)
+        blk = b.add(_obs(obs_id[t]), q[t], act[t], rew[t], _obs(nxt), term[t], trunc[t],
+                    lambda o: final_value(o["obs"][:, 0]))
+        if blk is not None:
+            assert len(blk) == K * E
+            blocks.append(blk)
+    blk = b.flush(lambda o: final_value(o["obs"][:, 0]))
+    if blk is not None:
+        blocks.append(blk)
+    got = []
+    for blk in blocks:
+        d = blk.data
+        for i in range(len(blk)):
+            assert blk.env[i] == int(d["obs"][i, 0]) % 10
+            got.append((int(d["obs"][i, 0]), int(d["action"][i]), float(d["reward"][i]), int(d["next_obs"][i, 0]),
+                        int(d["n"][i]), bool(d["terminated"][i]), bool(d["truncated"][i]), float(blk.priorities[i])))
+    got.sort()
+    ref = _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value)
+    assert [g[:2] + g[3:7] for g in got] == [r[:2] + r[3:7] for r in ref]
+    np.testing.assert_allclose([g[2] for g in got], [r[2] for r in ref], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose([g[7] for g in got], [r[7] for r in ref], rtol=1e-5, atol=1e-5)
+
+
+def test_dict_observations_and_dtypes():
+    """Several observation keys (e.g. the match env's lidar + image) each get obs/next_obs."""
+    E, n = 2, 2
+    b = NStepBlocks(E, n, 0.99, block_steps=1)
+    out = None
+    for t in range(3):
+        obs = {"obs/lidar": np.full((E, 4), t, np.float32), "obs/image": np.full((E, 2, 2, 3), t, np.uint8)}
+        out = b.add(obs, np.zeros((E, 2)), np.zeros(E, np.int64), np.ones(E, np.float32), obs,
+                    np.zeros(E, bool), np.zeros(E, bool), _no_values)
+    assert set(out.data) == {"obs/lidar", "obs/image", "next_obs/lidar", "next_obs/image", "action", "reward",
+                             "terminated", "truncated", "n"}
+    assert out.data["obs/image"].dtype == np.uint8 and out.data["obs/image"].shape == (E, 2, 2, 3)
+    assert (out.data["next_obs/image"] == 2).all() and (out.data["obs/lidar"] == 0).all()
+    assert out.data["n"].dtype == np.uint8 and out.data["reward"].dtype == np.float32
+    assert out.priorities.dtype == np.float32
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="n_step"):
+        NStepBlocks(1, 0, 0.9, 4)
+    with pytest.raises(ValueError, match="block_steps"):
+        NStepBlocks(1, 3, 0.9, 0)
 
 
 def test_epsilon_ladder():
