@@ -71,6 +71,7 @@ class NStepBlocks:
         self._term = np.zeros((R, E), bool)
         self._trunc = np.zeros((R, E), bool)
         self._disc = gamma ** np.arange(n_step + 1, dtype=np.float64)
+        self._idx: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._ar = np.arange(num_envs)
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
@@ -130,6 +131,13 @@ class NStepBlocks:
             a[:left] = a[keep]
         self.t = left
 
+    def _index(self, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """starts int64[K, 1], and start step and env of each flat transition, int64[K * E]."""
+        if self._idx is None or self._idx[0].shape[0] != K:
+            E = self.E
+            self._idx = (np.arange(K)[:, None], np.repeat(np.arange(K), E), np.tile(np.arange(E), K))
+        return self._idx
+
     def _emit(self, K: int, value_fn: ValueFn) -> Block:
         """Starts 0..K-1 of every env (steps j..j+n-1 and row j+n must be recorded, unless the
         episode ended earlier)."""
@@ -140,7 +148,7 @@ class NStepBlocks:
         end_row = np.zeros((K, E), np.int64)  # row of the step that ended it, where it ended
         term = np.zeros((K, E), bool)
         trunc = np.zeros((K, E), bool)
-        starts = np.arange(K)[:, None]
+        starts, j, env = self._index(K)
         for k in range(n):
             rows = slice(k, k + K)
             R += np.where(alive, self._disc[k] * self._rew[rows], 0.0)
@@ -152,8 +160,6 @@ class NStepBlocks:
             end_row = np.where(ends, starts + k, end_row)
             alive &= ~ends
         ended = ~alive
-        j = np.broadcast_to(starts, (K, E)).ravel()
-        env = np.broadcast_to(np.arange(E), (K, E)).ravel()
         flat_ended = ended.ravel()
         # next_obs: s_{j+n} in mid-episode, the stored final observation where the episode ended
         nxt_row = np.where(flat_ended, end_row.ravel(), j + n)

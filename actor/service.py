@@ -2,8 +2,8 @@
 step, per-env epsilon from the Ape-X ladder, n-step transitions with initial priorities, chunks
 published to the replay, the newest weights taken between steps (never blocking).
 
-Transitions and their initial priorities are built in blocks of ``ceil(chunk_size / E)`` steps
-(actor/nstep.py), one chunk per block. Priorities reuse the Q values computed for acting: a
+Transitions and their initial priorities are built in blocks of at least 16 steps
+(actor/nstep.py) and sent in chunks of ``ceil(chunk_size / E) * E`` transitions. Priorities reuse the Q values computed for acting: a
 transition is bootstrapped from the forward pass made when the actor acted on its ``next_obs``
 (``max_a Q(s', a)``, the actor has no target network); only transitions that end in a truncated
 episode need an extra forward pass on their final observation.
@@ -30,7 +30,7 @@ from zenrl.actor.slots import claim_slot
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ProtocolError, RemoteTimeout
-from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
+from zenrl.common.exploration import EpsilonGreedy, elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, num_actions,
                                    obs_spec, to_tensors)
 from zenrl.common.policy_io import wrap_selfplay
@@ -38,6 +38,9 @@ from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
+
+#: fewest batched steps per n-step block (actor/nstep.py)
+MIN_BLOCK_STEPS = 16
 
 
 class WeightsFollower:
@@ -107,8 +110,13 @@ class ApexActor:
         else:
             self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
+        self._act = EpsilonGreedy(self.eps, self.n_actions, self.rng)
+        # a chunk is chunk_size rounded up to whole batched steps; a block is whole chunks and at
+        # least MIN_BLOCK_STEPS steps (the per-block arithmetic is then spread over more steps)
+        chunk_steps = -(-acfg.chunk_size // acfg.envs_per_actor)
+        self._chunk_len = chunk_steps * acfg.envs_per_actor
         self.builder = NStepBlocks(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma,
-                                   block_steps=-(-acfg.chunk_size // acfg.envs_per_actor))
+                                   block_steps=chunk_steps * -(-MIN_BLOCK_STEPS // chunk_steps))
         self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s,
                                         cfg.transport.max_message_bytes, acfg.backlog_chunks)
         self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
@@ -131,11 +139,14 @@ class ApexActor:
         return self._forward(obs).max(1)
 
     def _send(self, block: Block | None) -> None:
-        """One chunk per block (``block_steps * E`` transitions: chunk_size rounded up to whole
-        batched steps)."""
+        """A block in chunks of chunk_size rounded up to whole batched steps (the last chunk of
+        a shutdown flush may be shorter)."""
         if block is None or len(block) == 0:
             return
-        self.replay.insert(block.data, block.priorities, self.weights.version)
+        cs = self._chunk_len
+        for i in range(0, len(block), cs):
+            self.replay.insert({k: v[i:i + cs] for k, v in block.data.items()}, block.priorities[i:i + cs],
+                               self.weights.version)
         self.sent_transitions += len(block)
 
     # -- main loop ----------------------------------------------------------------------------
@@ -160,10 +171,7 @@ class ApexActor:
                 if steps % poll == 0:
                     self.weights.maybe_load()
                 q = self._forward(obs)
-                actions = q.argmax(1)
-                explore = self.rng.random(E) < self.eps
-                if explore.any():
-                    actions[explore] = self.rng.integers(0, self.n_actions, int(explore.sum()))
+                actions = self._act(q)
                 res = self.envs.step(actions)
                 self._send(self.builder.add(obs, q, actions, res.rewards, res.next_obs, res.terminated,
                                             res.truncated, self._values))

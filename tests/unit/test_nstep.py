@@ -176,3 +176,25 @@ def test_step_pacer_caps_the_rate_without_bursting():
     assert p.delay() == 0.0                          # no wait ...
     assert p.delay() == pytest.approx(0.1)           # ... and no burst afterwards
     assert StepPacer(None, 8, clock=lambda: now[0]).delay() == 0.0
+
+
+def test_epsilon_greedy_per_env_rates():
+    """Env i explores with probability eps[i]: greedy where eps is 0, uniform where it is 1,
+    and in between the greedy action's frequency is 1 - eps + eps / A (within 5 standard
+    errors over 20 k steps)."""
+    from zenrl.common.exploration import EpsilonGreedy
+
+    eps = np.array([0.0, 1.0, 0.3])
+    A, T = 4, 20_000
+    pick = EpsilonGreedy(eps, A, np.random.default_rng(0))
+    q = np.array([[0.0, 0.0, 1.0, 0.0]] * 3)  # greedy action 2
+    acts = np.stack([pick(q) for _ in range(T)])
+    assert acts.dtype == np.int64 and acts.shape == (T, 3)
+    assert (acts[:, 0] == 2).all()
+    counts = np.bincount(acts[:, 1], minlength=A) / T
+    assert np.all(np.abs(counts - 0.25) < 5 * np.sqrt(0.25 * 0.75 / T))
+    p = 1 - 0.3 + 0.3 / A
+    assert abs((acts[:, 2] == 2).mean() - p) < 5 * np.sqrt(p * (1 - p) / T)
+    # the same seed gives the same actions
+    again = EpsilonGreedy(eps, A, np.random.default_rng(0))
+    assert np.array_equal(np.stack([again(q) for _ in range(T)]), acts)
