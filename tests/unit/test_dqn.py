@@ -1,5 +1,7 @@
 """Ape-X learner math on hand-made batches, networks, and weight versioning."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -134,3 +136,38 @@ def test_numpy_q_declines_conv_networks():
     net = QNetwork({"obs": ArraySpec((36, 36, 3), "uint8")}, 3, NetworkConfig(hidden=[16]))
     assert NumpyQ.of(net) is None
     assert NumpyQ.of(QNetwork({"obs": ArraySpec((36, 36, 3), "uint8")}, 3, NetworkConfig(hidden=[16], conv=False))) is not None
+
+
+def _learner_and_batch(B=32):
+    """A small DQNLearner (seeded) and one batch of B random transitions as tensors."""
+    from zenrl.common.config import LearnerConfig
+    from zenrl.learner.dqn import DQNLearner
+
+    torch.manual_seed(3)
+    spec = {"obs": ArraySpec((4,), "float32")}
+    dqn = DQNLearner(spec, 2, NetworkConfig(hidden=[16, 16], dueling=True), LearnerConfig(lr=1e-2), torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    data = {"obs": rng.normal(size=(B, 4)).astype(np.float32), "next_obs": rng.normal(size=(B, 4)).astype(np.float32),
+            "action": rng.integers(0, 2, B), "reward": rng.normal(size=B).astype(np.float32),
+            "n": np.full(B, 3, np.uint8), "terminated": rng.random(B) < 0.2}
+    return dqn, dqn.batch_to_tensors(data, rng.random(B).astype(np.float32))
+
+
+def test_fused_adam_takes_the_same_steps_and_old_optimizer_state():
+    """The learner's fused Adam gives the parameters a plain (unfused) Adam would, and takes the
+    optimizer state of a checkpoint written with an unfused one."""
+    fused, b = _learner_and_batch()
+    plain, _ = _learner_and_batch()
+    assert fused.opt.defaults["fused"]
+    plain.opt = torch.optim.Adam(plain.online.parameters(), lr=1e-2, eps=plain.cfg.adam_eps, foreach=False)
+    for _ in range(5):
+        fused.update(b)
+        plain.update(b)
+    for p, q in zip(fused.online.parameters(), plain.online.parameters()):
+        torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6)
+    resumed, _ = _learner_and_batch()
+    resumed.load_state_dict(copy.deepcopy(plain.state_dict()))  # as from a file: no shared tensors
+    resumed.update(b)
+    plain.update(b)
+    for p, q in zip(resumed.online.parameters(), plain.online.parameters()):
+        torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6)
