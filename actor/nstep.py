@@ -117,10 +117,6 @@ class NStepBlocks:
         self._shift(ready)
         return block
 
-    def reset(self) -> None:
-        """Forget everything recorded (the envs were reset)."""
-        self.t = 0
-
     def _shift(self, k: int) -> None:
         keep = slice(k, self.t)
         left = self.t - k

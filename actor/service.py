@@ -3,10 +3,11 @@ step, per-env epsilon from the Ape-X ladder, n-step transitions with initial pri
 published to the replay, the newest weights taken between steps (never blocking).
 
 Transitions and their initial priorities are built in blocks of at least 16 steps
-(actor/nstep.py) and sent in chunks of ``ceil(chunk_size / E) * E`` transitions. Priorities reuse the Q values computed for acting: a
-transition is bootstrapped from the forward pass made when the actor acted on its ``next_obs``
-(``max_a Q(s', a)``, the actor has no target network); only transitions that end in a truncated
-episode need an extra forward pass on their final observation.
+(actor/nstep.py) and sent in chunks of ``ceil(chunk_size / E) * E`` transitions. Priorities
+reuse the Q values computed for acting: a transition is bootstrapped from the forward pass made
+when the actor acted on its ``next_obs`` (``max_a Q(s', a)``, the actor has no target network);
+only transitions that end in a truncated episode need an extra forward pass on their final
+observation.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ class ApexActor:
         else:
             self.eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         self.rng = np.random.default_rng(cfg.seed + 7919 * (slot + 1))
-        self._act = EpsilonGreedy(self.eps, self.n_actions, self.rng)
+        self._epsilon_greedy = EpsilonGreedy(self.eps, self.n_actions, self.rng)
         # a chunk is chunk_size rounded up to whole batched steps; a block is whole chunks and at
         # least MIN_BLOCK_STEPS steps (the per-block arithmetic is then spread over more steps)
         chunk_steps = -(-acfg.chunk_size // acfg.envs_per_actor)
@@ -171,7 +172,7 @@ class ApexActor:
                 if steps % poll == 0:
                     self.weights.maybe_load()
                 q = self._forward(obs)
-                actions = self._act(q)
+                actions = self._epsilon_greedy(q)
                 res = self.envs.step(actions)
                 self._send(self.builder.add(obs, q, actions, res.rewards, res.next_obs, res.terminated,
                                             res.truncated, self._values))
