@@ -53,11 +53,12 @@ class DQNLearner:
         self.target = QNetwork(self.obs_spec, n_actions, net_cfg).to(device)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
+        self._fused = cfg.optimizer == "adam" and device.type in ("cpu", "cuda")
         if cfg.optimizer == "adam":
             # the fused kernel: one op per step instead of a dozen, the same arithmetic (0.54 -> 0.14
             # ms a step for the CartPole network on one CPU thread)
             self.opt: torch.optim.Optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps,
-                                                               fused=device.type in ("cpu", "cuda"))
+                                                               fused=self._fused)
         else:
             self.opt = torch.optim.RMSprop(self.online.parameters(), lr=cfg.lr, alpha=0.95, eps=0.01, centered=True)
         self.updates = 0
@@ -103,4 +104,13 @@ class DQNLearner:
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
         self.opt.load_state_dict(state["optimizer"])
+        if self._fused:
+            # saved groups carry the writer's flags (None from an unfused Adam): fuse here, with
+            # the step counters where the fused kernel wants them (float32, on the parameter's device)
+            for group in self.opt.param_groups:
+                group["fused"], group["foreach"] = True, None
+                for p in group["params"]:
+                    st = self.opt.state.get(p)
+                    if st and "step" in st:
+                        st["step"] = st["step"].to(p.device, torch.float32)
         self.updates = int(state["updates"])

@@ -167,6 +167,7 @@ def test_fused_adam_takes_the_same_steps_and_old_optimizer_state():
         torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6)
     resumed, _ = _learner_and_batch()
     resumed.load_state_dict(copy.deepcopy(plain.state_dict()))  # as from a file: no shared tensors
+    assert resumed.opt.param_groups[0]["fused"]  # still the fused kernel after the unfused state
     resumed.update(b)
     plain.update(b)
     for p, q in zip(resumed.online.parameters(), plain.online.parameters()):
