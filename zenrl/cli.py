@@ -15,6 +15,7 @@ from typing import Callable
 
 from zenrl.common.config import RunConfig, describe_options, load_config
 from zenrl.common.errors import ZenrlError
+from zenrl.placement import apply_from_env
 
 log = logging.getLogger("zenrl")
 
@@ -58,6 +59,9 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
     from zenrl.common.transport import install_stop_signals
 
     setup_logging(args.log_level, role)
+    placed = apply_from_env()  # before any thread starts, so that every thread inherits it
+    if placed is not None:
+        log.info("cpu placement: CPUs %s, nice +%d", placed.cpus, placed.nice)
     cfg = resolve(args)
     run_id = cfg.run_id or "default"
     stop = threading.Event()

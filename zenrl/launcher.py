@@ -30,6 +30,7 @@ import yaml
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.transport import Node, open_router
+from zenrl.placement import describe, plan, usable_cpus
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +144,7 @@ class Launcher:
         self.children: list[Child] = []
         self.max_restarts = 5
         self.stop_reason = ""
+        self.placement = plan(self.cfg.cpu_placement, self.cfg.algo, self.cfg.learner.torch_threads, usable_cpus())
 
     # -- processes ---------------------------------------------------------------------------
     def _endpoints(self) -> tuple[list[str], str]:
@@ -159,6 +161,8 @@ class Launcher:
         cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(self.run_dir / "config.yaml"),
                "--run-id", self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
+        if self.placement is not None and c.role in self.placement:
+            env.update(self.placement[c.role].env())
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
@@ -241,7 +245,20 @@ class Launcher:
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False))
         install_stop_signals(self.stop)
         listen, self.endpoint = self._endpoints()
-        router = open_router(listen, self.cfg.transport.router_config)
+        every_cpu = usable_cpus()
+        if self.placement is not None:
+            # on Linux this sets the calling thread's CPUs: the router's threads, started by
+            # open_router, inherit them and share the non-learner CPUs ...
+            os.sched_setaffinity(0, self.placement["replay"].cpus or every_cpu)
+            log.info("cpu placement (cpu_placement=auto; off leaves it to the OS): %s; the router on CPU %s",
+                     describe(self.placement), ",".join(map(str, self.placement["replay"].cpus or ())))
+        try:
+            router = open_router(listen, self.cfg.transport.router_config)
+        finally:
+            if self.placement is not None:
+                # ... while the children start on every CPU (their imports run in parallel) and
+                # place themselves once imported (zenrl.placement.apply_from_env)
+                os.sched_setaffinity(0, every_cpu)
         log.info("run %s: router on %s, logs in %s", self.run_id, listen, self.run_dir / "logs")
         node = Node(session=router)
         rc = 0
