@@ -248,7 +248,8 @@ def orchestrate(args: argparse.Namespace) -> int:
         lstats = StatsWatch(node, f"{keys.prefix}/stats/learner/*")
         log(f"router {ep}, run {run}, logs in {tmp}")
         procs.start("replay", ["-m", "zenrl.cli", "replay", "--config", str(CONFIG), "--router", ep, "--run-id", run,
-                               "--set", "replay.stats_interval_s=0.25"])
+                               "--set", "replay.stats_interval_s=0.25",
+                               "--set", f"replay.capacity={2 * PREFILL}"])  # holds the whole prefill
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
         prefill(node, keys, rstats, PREFILL)
         log(f"replay pre-filled: {rstats.latest.get('size')} items")

@@ -81,7 +81,10 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
         cmd += ["--set", kv]
     t0 = time.monotonic()
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=cap_s + 300)
-    s = json.loads((runs_dir / run_id / "summary.json").read_text())
+    summary = runs_dir / run_id / "summary.json"
+    if not summary.is_file():
+        raise RuntimeError(f"zenrl run (seed {seed}) exited {p.returncode} without a summary: {p.stderr[-2000:]}")
+    s = json.loads(summary.read_text())
     evals = s.get("evals") or []
     last = next((e for e in reversed(evals) if e.get("since_first_step")), None)
     sps = last["env_steps"] / last["since_first_step"] if last and last["since_first_step"] > 0 else None

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Literal, Mapping, Optional
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from zenrl.common.errors import ConfigError
 
@@ -165,6 +165,12 @@ class RunConfig(_Section):
     evaluator: EvalConfig = Field(default_factory=EvalConfig)
     a3c: A3CConfig = Field(default_factory=A3CConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
+
+    @field_validator("cpu_placement", mode="before")
+    @classmethod
+    def _yaml_off(cls, v: Any) -> Any:
+        # YAML 1.1 reads a bare `off` / `on` as a boolean
+        return {False: "off", True: "auto"}.get(v, v) if isinstance(v, bool) else v
 
     @model_validator(mode="after")
     def _check(self) -> "RunConfig":

@@ -62,3 +62,14 @@ def test_saved_config_with_removed_option_stays_readable(caplog):
     saved["learner"]["lr"] = -1
     with pytest.raises(ConfigError, match="learner.lr"):
         config_from_dict(saved)
+
+
+def test_cpu_placement_off_survives_yaml(tmp_path):
+    # YAML 1.1 reads a bare `off` as false; the option still means "off"
+    f = tmp_path / "c.yaml"
+    f.write_text("cpu_placement: off\n")
+    assert load_config(f).cpu_placement == "off"
+    assert load_config(None, ["cpu_placement=off"]).cpu_placement == "off"
+    assert load_config(None, ["cpu_placement=auto"]).cpu_placement == "auto"
+    with pytest.raises(ConfigError, match="cpu_placement"):
+        load_config(None, ["cpu_placement=sometimes"])
