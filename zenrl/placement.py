@@ -3,14 +3,15 @@
 On a 2-core machine the OS shares the CPUs out evenly between every runnable process, so two
 uncapped actors, the replay and the router leave the Ape-X learner about half a core: it trained
 at ~97 updates/s there, against ~300 alone. With ``cpu_placement: auto`` (set by
-``configs/cartpole_apex.yaml``; the default is ``off``) the launcher reserves the last ``learner.torch_threads`` CPUs for the learner, runs every other
-process on the remaining CPUs, and lowers the actors' scheduling priority (nice +5) so that the
-replay, the router and the evaluator, which share those CPUs with them, answer promptly.
+``configs/cartpole_apex.yaml``; the default is ``off``) the launcher reserves the last
+``learner.torch_threads`` CPUs for the learner, runs every other process and its own router on
+the remaining CPUs, and lowers the actors' scheduling priority (nice +5) so that the replay, the
+router and the evaluator, which share those CPUs with them, answer promptly.
 
 The launcher computes a :class:`Placement` per process and passes it in the environment
-(:data:`CPUS_ENV`, :data:`NICE_ENV`); the child applies it first thing (:func:`apply_from_env`),
-before it starts any thread, so every thread it starts inherits it. Linux only: elsewhere the
-placement is skipped with a log line.
+(:data:`CPUS_ENV`, :data:`NICE_ENV`); the child applies it (:func:`apply_from_env`) once its
+modules are imported (on every CPU, in parallel with the others) and before it starts a thread,
+so every thread it starts inherits it. Linux only: elsewhere :func:`plan` places nothing.
 
 It pays where data is cheap (CartPole's actors make ~15 k env steps/s, far more than the learner
 consumes) and costs where it is dear: on the Burger War match (pybullet) it halved the env steps
