@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from zenrl.placement import describe, plan, usable_cpus
 log = logging.getLogger(__name__)
 
 PARENT_ENV = "ZENRL_PARENT_PID"
+RATE_WINDOW_S = 5.0  # env steps/s in the progress display is measured over this window
 
 
 def new_run_id(cfg: RunConfig) -> str:
@@ -85,7 +87,10 @@ class Progress:
     evals: list[dict[str, Any]] = field(default_factory=list)
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
-    _last_steps: tuple[float, int] = (0.0, 0)
+    # (time, total env steps) whenever the total changed, the last RATE_WINDOW_S seconds of them
+    # (plus one older as the base): actors report about once a second, so a rate over two
+    # consecutive 0.5 s ticks was mostly 0 and otherwise double
+    _steps_seen: deque[tuple[float, int]] = field(default_factory=deque)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
@@ -120,13 +125,20 @@ class Progress:
             self.first_step_t = time.monotonic()
         self.actor_steps[actor_id] = max(steps, self.actor_steps.get(actor_id, 0))
 
-    def tick_rate(self) -> None:
-        now = time.monotonic()
-        t0, s0 = self._last_steps
-        s = self.env_steps
-        if t0:
-            self.env_steps_rate = (s - s0) / max(now - t0, 1e-9)
-        self._last_steps = (now, s)
+    def tick_rate(self, now: float | None = None) -> None:
+        """Update ``env_steps_rate``: env steps/s between the changes of the total seen over the
+        last :data:`RATE_WINDOW_S` seconds; 0 once nothing has changed for that long."""
+        now = time.monotonic() if now is None else now
+        seen, s = self._steps_seen, self.env_steps
+        if not seen or s != seen[-1][1]:
+            seen.append((now, s))
+        while len(seen) > 2 and now - seen[1][0] > RATE_WINDOW_S:
+            seen.popleft()
+        if now - seen[-1][0] > RATE_WINDOW_S:
+            self.env_steps_rate = 0.0
+        elif len(seen) >= 2:
+            (t0, s0), (t1, s1) = seen[0], seen[-1]
+            self.env_steps_rate = (s1 - s0) / max(t1 - t0, 1e-9)
 
     @property
     def last_eval(self) -> float | None:
