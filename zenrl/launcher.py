@@ -261,9 +261,8 @@ class Launcher:
         if self.placement is not None:
             # on Linux this sets the calling thread's CPUs: the router's threads, started by
             # open_router, inherit them and share the non-learner CPUs ...
-            os.sched_setaffinity(0, self.placement["replay"].cpus or every_cpu)
-            log.info("cpu placement (cpu_placement=auto; off leaves it to the OS): %s; the router on CPU %s",
-                     describe(self.placement), ",".join(map(str, self.placement["replay"].cpus or ())))
+            os.sched_setaffinity(0, self.placement["router"].cpus)
+            log.info("cpu placement (cpu_placement=auto; off leaves it to the OS): %s", describe(self.placement))
         try:
             router = open_router(listen, self.cfg.transport.router_config)
         finally:

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 CPUS_ENV = "ZENRL_CPUS"
 NICE_ENV = "ZENRL_NICE"
 ACTOR_NICE = 5
-MAX_CPUS_AUTO = 4  # above this the OS scheduler leaves the learner a core by itself
+MAX_CPUS_AUTO = 4  # measured on 2 CPUs only; larger machines are left to the OS
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,8 @@ def usable_cpus() -> list[int]:
 
 
 def plan(mode: str, algo: str, learner_threads: int, cpus: list[int]) -> dict[str, Placement] | None:
-    """Placement per role (``learner``, ``actor``, ``replay``, ``evaluator``), or None when
+    """Placement per role (``learner``, ``actor``, ``replay``, ``evaluator``, and ``router``: the
+    launcher's own Zenoh router), or None when
     ``mode`` is ``off``, the algorithm is not Ape-X, affinity is unsupported, or ``cpus`` has more
     than :data:`MAX_CPUS_AUTO` or not more than ``learner_threads`` CPUs."""
     if mode != "auto" or algo != "apex" or not hasattr(os, "sched_setaffinity"):
@@ -66,7 +67,7 @@ def plan(mode: str, algo: str, learner_threads: int, cpus: list[int]) -> dict[st
     learner = tuple(cpus[-learner_threads:])
     rest = tuple(cpus[:-learner_threads])
     return {"learner": Placement(learner), "actor": Placement(rest, ACTOR_NICE),
-            "replay": Placement(rest), "evaluator": Placement(rest)}
+            "replay": Placement(rest), "evaluator": Placement(rest), "router": Placement(rest)}
 
 
 def describe(p: dict[str, Placement]) -> str:

@@ -18,7 +18,7 @@ def test_two_cpus_reserve_the_last_for_the_learner():
     p = plan("auto", "apex", 1, [0, 1])
     assert p["learner"] == Placement((1,), 0)
     assert p["actor"] == Placement((0,), ACTOR_NICE)
-    assert p["replay"] == Placement((0,), 0) and p["evaluator"] == Placement((0,), 0)
+    assert p["replay"] == p["evaluator"] == p["router"] == Placement((0,), 0)
 
 
 @linux_only
