@@ -279,7 +279,10 @@ class Node:
                 done.set()
                 on_reply(None)
 
-        self.session.get(key, zenoh.handlers.Callback(cb, on_drop), payload=payload, timeout=timeout_s)
+        # indirect=False: run the callbacks on the Zenoh thread that has the reply. The default
+        # (indirect=True) starts a Python thread per handler, i.e. per query: ~270 thread starts
+        # a second in a CartPole learner. Callbacks here must be short and never block.
+        self.session.get(key, zenoh.handlers.Callback(cb, on_drop, indirect=False), payload=payload, timeout=timeout_s)
 
     def token(self, key: str) -> Any:
         """Declare a liveliness token (undeclared on close)."""
