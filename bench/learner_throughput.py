@@ -174,12 +174,12 @@ def service_rate(cfg: Any, node: Any, run: str, name: str, warmup_s: float, dura
 
 BUCKETS = [
     ("waiting on prefetcher (SamplePrefetcher.get)", "common/replay_client.py", "get"),
-    ("batch_to_tensors", "learner/dqn.py", "batch_to_tensors"),
+    ("batch_to_tensors (0 here: it runs in the reply callback)", "learner/dqn.py", "batch_to_tensors"),
     ("DQNLearner.update", "learner/dqn.py", "update"),
-    ("PriorityUpdate.encode", "common/protocol.py", "encode"),
+    ("encode (PriorityUpdate: on the sender thread)", "common/protocol.py", "encode"),
     ("weights encode (_encode_weights)", "learner/service.py", "_encode_weights"),
     ("write_version_mark", "learner/checkpoint.py", "write_version_mark"),
-    ("BackgroundSender.send", "learner/service.py", "send"),
+    ("BackgroundSender.send_priorities", "learner/service.py", "send_priorities"),
     ("stats/metrics (MetricsWriter.write)", "common/metrics.py", "write"),
 ]
 

@@ -107,6 +107,9 @@ class LearnerConfig(_Section):
     beta_anneal_updates: int = Field(20_000, ge=1, description="Updates over which beta anneals linearly to 1.")
     publish_every_updates: int = Field(25, ge=1, description="Broadcast weights every this many updates.")
     requests_in_flight: int = Field(4, ge=1, description="Sample requests kept in flight by the prefetcher.")
+    send_linger_s: float = Field(0.01, ge=0, le=1.0, description=(
+        "Ape-X: the priority/weights sender waits this long after the first queued item and sends all "
+        "that gathered (priorities merged into one message), waking once per few updates; 0 sends at once."))
     device: str = Field("auto", description="torch device: auto (cuda if available), cpu, cuda, cuda:N.")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads in the learner.")
     checkpoint_interval_s: float = Field(60.0, gt=0, description="Save a checkpoint this often (and on stop).")

@@ -14,8 +14,8 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
-from typing import Mapping
+from dataclasses import dataclass, replace
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -29,13 +29,15 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Sampled:
     """A sampled batch. keys int64[B], probabilities float64[B], weights float32[B] (IS weights
-    normalised by their max), data ``{name: array[B, ...]}``; ``replay_size`` at sampling time."""
+    normalised by their max), data ``{name: array[B, ...]}``; ``replay_size`` at sampling time.
+    ``prepared``: what :class:`SamplePrefetcher`'s ``prepare`` made of it (e.g. tensors), if any."""
 
     keys: np.ndarray
     probabilities: np.ndarray
     weights: np.ndarray
     data: dict[str, np.ndarray]
     replay_size: int
+    prepared: Any = None
 
 
 class ZenohReplayClient:
@@ -138,71 +140,105 @@ class ZenohReplayClient:
 class SamplePrefetcher:
     """Keeps ``in_flight`` sample requests outstanding and queues ready batches.
 
-    ``get(timeout)`` returns a :class:`Sampled` or ``None``. A not-ready reply or a timeout
-    backs off briefly before that request slot is re-issued (the replay answers not-ready at
-    once, so this never hangs). ``beta`` is read at request time from ``beta_fn()``.
+    ``get(timeout)`` returns a :class:`Sampled` or ``None``; taking a batch issues the request
+    that replaces it, from the consumer's thread (a Zenoh call of a few microseconds), so no
+    thread wakes per batch on the learner's side but Zenoh's own. A not-ready reply, a timeout
+    or a bad reply re-issues that request after ``backoff_s`` from a helper thread that sleeps
+    otherwise (the replay answers not-ready at once, so this never hangs). ``beta`` is read at
+    request time from ``beta_fn()``.
+
+    ``prepare(sampled)``, if given, runs when a reply arrives (off the consumer's thread) and its
+    result is the batch's ``prepared`` field: the learner turns the arrays into tensors there, so
+    a training step starts on a batch that is ready to use. A reply it raises on is counted in
+    ``errors`` and dropped.
     """
 
-    def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4) -> None:
+    def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4,
+                 prepare: Callable[[Sampled], Any] | None = None, backoff_s: float = 0.05) -> None:
         self.client = client
+        self.prepare = prepare
         self.batch_size = batch_size
         self.beta_fn = beta_fn
         self.in_flight = in_flight
+        self.backoff_s = backoff_s
+        # ready + in flight + waiting for a retry == in_flight at all times
         self._ready: queue.Queue[Sampled] = queue.Queue()
-        self._slots = threading.Semaphore(in_flight)
+        self._retry = 0
+        self._lock = threading.Lock()
+        self._retry_due = threading.Event()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="sample-prefetch", daemon=True)
+        self._thread = threading.Thread(target=self._retry_loop, name="sample-retry", daemon=True)
         self.not_ready = 0
         self.timeouts = 0
         self.errors = 0
         self.last_not_ready_reason = ""
-        self._backoff = threading.Event()
 
     def start(self) -> "SamplePrefetcher":
         self._thread.start()
+        for _ in range(self.in_flight):
+            self._issue()
         return self
 
     def stop(self) -> None:
         self._stop.set()
+        self._retry_due.set()
         self._thread.join(timeout=5)
 
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            if not self._slots.acquire(timeout=0.1):
-                continue
-            if self._backoff.is_set():
-                self._backoff.clear()
-                self._stop.wait(0.05)
+    def _issue(self) -> None:
+        if self._stop.is_set():
+            return
+        try:
             self.client.node.query_async(self.client.keys.sample,
                                          self.client.request_payload(self.batch_size, self.beta_fn()),
                                          self.client.timeout_s, self._on_reply)
+        except Exception as e:  # zenoh.ZError (session closing): counted, retried after the backoff
+            self.errors += 1
+            log.warning("could not send a sample request: %s", e)
+            self._failed()
+
+    def _failed(self) -> None:
+        with self._lock:
+            self._retry += 1
+        self._retry_due.set()
+
+    def _retry_loop(self) -> None:
+        while not self._stop.is_set():
+            self._retry_due.wait()
+            if self._stop.wait(self.backoff_s):
+                return
+            self._retry_due.clear()
+            with self._lock:
+                n, self._retry = self._retry, 0
+            for _ in range(n):
+                self._issue()
 
     def _on_reply(self, payload: bytes | None) -> None:
-        # Runs on a Zenoh thread: never block here. A request slot stays held until the
-        # consumer takes the batch (see get), so ready + in flight <= in_flight and the ready
-        # queue can never be full.
-        keep_slot = False
+        # Runs on a Zenoh thread: never block here, never call into Zenoh.
+        if payload is None:
+            self.timeouts += 1
+            self._failed()
+            return
         try:
-            if payload is None:
-                self.timeouts += 1
-                self._backoff.set()
-                return
+            s = self.client.parse_reply(payload)
+        except NotReady as e:
+            self.not_ready += 1
+            self.last_not_ready_reason = str(e)
+            self._failed()
+            return
+        except ProtocolError as e:
+            self.errors += 1
+            log.warning("bad sample reply: %s", e)
+            self._failed()
+            return
+        if self.prepare is not None:
             try:
-                s = self.client.parse_reply(payload)
-            except NotReady as e:
-                self.not_ready += 1
-                self.last_not_ready_reason = str(e)
-                self._backoff.set()
-                return
-            except ProtocolError as e:
+                s = replace(s, prepared=self.prepare(s))
+            except Exception as e:  # a batch the learner cannot use: counted, the rest go on
                 self.errors += 1
-                log.warning("bad sample reply: %s", e)
+                log.warning("could not prepare a sampled batch: %s", e)
+                self._failed()
                 return
-            self._ready.put_nowait(s)
-            keep_slot = True
-        finally:
-            if not keep_slot:
-                self._slots.release()
+        self._ready.put_nowait(s)
 
     def get(self, timeout_s: float = 1.0) -> Sampled | None:
         """The next ready batch, or ``None`` after ``timeout_s``."""
@@ -210,7 +246,7 @@ class SamplePrefetcher:
             s = self._ready.get(timeout=timeout_s)
         except queue.Empty:
             return None
-        self._slots.release()
+        self._issue()
         return s
 
 

@@ -7,12 +7,14 @@ stop. A3C mode lives in :mod:`zenrl.learner.a3c`.
 
 from __future__ import annotations
 
+import collections
 import logging
-import queue
 import threading
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 import torch
 
@@ -33,33 +35,85 @@ CHECKPOINT_FORMAT = 1
 
 
 class BackgroundSender:
-    """Puts payloads from a queue so the training step never waits on the network."""
+    """Puts payloads from a thread of its own so the training step never waits on the network.
 
-    def __init__(self, maxsize: int = 64) -> None:
-        self._q: queue.Queue[tuple[Any, bytes] | None] = queue.Queue(maxsize=maxsize)
+    ``send`` queues bytes; ``send_priorities`` queues one batch's new priorities, and the
+    priorities queued since the last wake-up go out as one :class:`PriorityUpdate` (concatenated
+    in order, so for a key sampled twice the later value wins, as the replay applies them). With
+    ``linger_s`` > 0 the thread waits that long after the first item before it sends, so it
+    wakes once per few training steps instead of once per step (each wake-up of another thread
+    costs the training thread a GIL hand-off). Over ``max_items`` queued, items are dropped and
+    counted in ``dropped``; a failed put or encoding is logged and counted in ``failed``.
+    """
+
+    def __init__(self, max_items: int = 256, linger_s: float = 0.0, max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self.max_items = max_items
+        self.linger_s = linger_s
+        self.max_bytes = max_message_bytes
+        self._items: collections.deque[tuple[Any, Any]] = collections.deque()
+        self._wake = threading.Event()
+        self._closed = False
         self.dropped = 0
+        self.failed = 0
+        self.sent = 0
         self._t = threading.Thread(target=self._loop, name="sender", daemon=True)
         self._t.start()
 
-    def send(self, publisher: Any, payload: bytes) -> None:
-        try:
-            self._q.put_nowait((publisher, payload))
-        except queue.Full:
+    def _queue(self, publisher: Any, item: Any) -> None:
+        if len(self._items) >= self.max_items:
             self.dropped += 1
+            return
+        self._items.append((publisher, item))
+        if not self._wake.is_set():
+            self._wake.set()
+
+    def send(self, publisher: Any, payload: bytes) -> None:
+        self._queue(publisher, payload)
+
+    def send_priorities(self, publisher: Any, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """keys int64[B], priorities float32[B] (held by reference: do not modify them)."""
+        self._queue(publisher, (keys, priorities))
 
     def _loop(self) -> None:
         while True:
-            item = self._q.get()
-            if item is None:
+            self._wake.wait()
+            if not self._closed and self.linger_s > 0:
+                time.sleep(self.linger_s)
+            self._wake.clear()
+            items = []
+            while self._items:
+                items.append(self._items.popleft())
+            self._flush(items)
+            if self._closed and not self._items:
                 return
-            pub, payload = item
+
+    def _flush(self, items: list[tuple[Any, Any]]) -> None:
+        prios: dict[int, tuple[Any, list, list]] = {}
+        out: list[tuple[Any, Any]] = []
+        for pub, item in items:
+            if isinstance(item, tuple):
+                if id(pub) not in prios:
+                    prios[id(pub)] = (pub, [], [])
+                    out.append((pub, id(pub)))  # the merged update goes where the first part was
+                prios[id(pub)][1].append(item[0])
+                prios[id(pub)][2].append(item[1])
+            else:
+                out.append((pub, item))
+        for pub, item in out:
             try:
-                pub.put(payload)
-            except Exception as e:  # zenoh.ZError if the session closed; keep the thread alive
+                if isinstance(item, int):
+                    _, ks, ps = prios[item]
+                    item = P.PriorityUpdate(keys=np.concatenate(ks), priorities=np.concatenate(ps)).encode(self.max_bytes)
+                pub.put(item)
+                self.sent += 1
+            except Exception as e:  # zenoh.ZError if the session closed, an encoding error: keep going
+                self.failed += 1
                 log.warning("background put failed: %s", e)
 
     def close(self) -> None:
-        self._q.put(None)
+        """Send what is queued, then stop the thread."""
+        self._closed = True
+        self._wake.set()
         self._t.join(timeout=5)
 
 
@@ -150,7 +204,7 @@ class ApexLearnerService(LearnerBase):
     def run(self, stop: threading.Event) -> None:
         cfg = self.cfg.learner
         metrics = MetricsWriter(self.run_dir)
-        sender = BackgroundSender()
+        sender = BackgroundSender(linger_s=cfg.send_linger_s, max_message_bytes=self.cfg.transport.max_message_bytes)
         w_pub = self.node.publisher(self.keys.weights, low_priority=True)
         stats_pub = self.node.publisher(self.keys.stats("learner", self.id))
         prio_pub = self.node.publisher(self.keys.priorities)
@@ -158,7 +212,8 @@ class ApexLearnerService(LearnerBase):
         self.node.token(self.keys.alive("learner", self.id))
         self._latest_weights = self._encode_weights()
         w_pub.put(self._latest_weights)
-        pf = SamplePrefetcher(self.client, cfg.batch_size, self.dqn.beta, cfg.requests_in_flight).start()
+        pf = SamplePrefetcher(self.client, cfg.batch_size, self.dqn.beta, cfg.requests_in_flight,
+                              prepare=lambda s: self.dqn.batch_to_tensors(s.data, s.weights)).start()
         upd_rate, smp_rate = RateMeter(), RateMeter()
         last_log = last_ckpt = time.monotonic()
         acc: dict[str, float] = {}
@@ -174,9 +229,8 @@ class ApexLearnerService(LearnerBase):
                     stop.wait(0.5)  # the launcher stops the run once it sees the final count
                 wait_s += time.monotonic() - t0
                 if s is not None:
-                    b = self.dqn.batch_to_tensors(s.data, s.weights)
-                    m, prios = self.dqn.update(b)
-                    sender.send(prio_pub, P.PriorityUpdate(keys=s.keys, priorities=prios).encode())
+                    m, prios = self.dqn.update(s.prepared)
+                    sender.send_priorities(prio_pub, s.keys, prios)
                     self.transitions_consumed += len(prios)
                     upd_rate.add(1)
                     smp_rate.add(len(prios))
@@ -196,7 +250,8 @@ class ApexLearnerService(LearnerBase):
                                  "samples_per_s": smp_rate.rate(), "policy_lag": lag_sum / max(n_acc, 1),
                                  "beta": self.dqn.beta(), "wait_fraction": wait_s / max(now - last_log, 1e-9),
                                  "transitions_consumed": self.transitions_consumed, "not_ready": pf.not_ready,
-                                 "sample_timeouts": pf.timeouts, "send_dropped": sender.dropped})
+                                 "sample_timeouts": pf.timeouts, "sample_errors": pf.errors,
+                                 "send_dropped": sender.dropped, "send_failed": sender.failed})
                     stats_pub.put(P.Stats(role="learner", id=self.id, time=time.time(), values=vals).encode())
                     metrics.write("learner", self.dqn.updates, vals)
                     if n_acc:

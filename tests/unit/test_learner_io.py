@@ -1,0 +1,138 @@
+"""The learner's I/O helpers with in-process fakes: the background sender (priorities merged in
+order, failures counted) and the sample prefetcher (requests in flight, retries, prepare)."""
+
+import threading
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
+from zenrl.learner.service import BackgroundSender
+from tests.conftest import wait_until
+
+
+class FakePublisher:
+    def __init__(self, fail_first: int = 0) -> None:
+        self.puts: list[bytes] = []
+        self.fail_first = fail_first
+
+    def put(self, payload: bytes) -> None:
+        if self.fail_first > 0:
+            self.fail_first -= 1
+            raise RuntimeError("session closed")
+        self.puts.append(payload)
+
+
+def test_sender_merges_queued_priorities_in_order_and_keeps_other_payloads():
+    prio, weights = FakePublisher(), FakePublisher()
+    s = BackgroundSender(linger_s=0.5)  # long enough that all four items gather before a send
+    s.send_priorities(prio, np.array([1, 2, 3]), np.array([0.1, 0.2, 0.3], np.float32))
+    s.send(weights, b"w1")
+    s.send_priorities(prio, np.array([2, 7]), np.array([0.9, 0.7], np.float32))
+    s.send_priorities(prio, np.array([8]), np.array([0.8], np.float32))
+    s.close()
+    assert weights.puts == [b"w1"]
+    assert len(prio.puts) == 1
+    u = P.PriorityUpdate.decode(prio.puts[0])
+    np.testing.assert_array_equal(u.keys, [1, 2, 3, 2, 7, 8])  # key 2 twice: the later value last
+    np.testing.assert_allclose(u.priorities, [0.1, 0.2, 0.3, 0.9, 0.7, 0.8], rtol=1e-6)
+    assert (s.sent, s.failed, s.dropped) == (2, 0, 0)
+
+
+def test_sender_without_linger_sends_each_item_and_counts_failed_puts():
+    pub = FakePublisher(fail_first=1)
+    s = BackgroundSender(linger_s=0.0, max_message_bytes=200)
+    s.send(pub, b"a")
+    wait_until(lambda: s.failed == 1, 5, "the first put to fail", 0.005)
+    s.send(pub, b"b")
+    s.send_priorities(pub, np.arange(100), np.ones(100, np.float32))  # over the 200-byte cap
+    s.send(pub, b"c")
+    s.close()
+    assert pub.puts == [b"b", b"c"]
+    assert (s.sent, s.failed) == (2, 2)
+
+
+def test_sender_drops_and_counts_over_its_queue_limit():
+    pub = FakePublisher()
+    s = BackgroundSender(max_items=3, linger_s=0.5)
+    for i in range(5):
+        s.send(pub, bytes([i]))
+    s.close()
+    assert s.dropped == 2
+    assert pub.puts == [b"\x00", b"\x01", b"\x02"]
+
+
+class FakeNode:
+    """Records ``query_async`` calls; the test answers them by calling the callbacks."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.pending: list = []
+        self.issued = 0
+
+    def query_async(self, key, payload, timeout_s, on_reply) -> None:
+        P.SampleRequest.decode(payload)  # a well-formed request
+        with self.lock:
+            self.pending.append(on_reply)
+            self.issued += 1
+
+    def take(self):
+        with self.lock:
+            return self.pending.pop(0)
+
+
+def ok_reply(n: int = 4) -> bytes:
+    return P.SampleReply(request_id=1, status="ok", replay_size=100, keys=np.arange(n, dtype=np.int64),
+                         probabilities=np.full(n, 0.01), weights=np.ones(n, np.float32),
+                         data={"obs": np.zeros((n, 3), np.float32)}).encode()
+
+
+def make_prefetcher(node, **kw) -> SamplePrefetcher:
+    client = ZenohReplayClient(node, P.Keys("unit"), timeout_s=1.0)
+    return SamplePrefetcher(client, 4, lambda: 0.4, in_flight=3, backoff_s=0.01, **kw).start()
+
+
+def test_prefetcher_keeps_requests_in_flight_and_replaces_each_batch_taken():
+    node = FakeNode()
+    pf = make_prefetcher(node, prepare=lambda s: ("prepared", len(s.keys)))
+    try:
+        assert node.issued == 3
+        assert pf.get(timeout_s=0.05) is None  # nothing answered yet
+        node.take()(ok_reply())
+        node.take()(ok_reply())
+        assert node.issued == 3  # a reply alone issues nothing: ready + in flight == 3
+        s = pf.get(timeout_s=1.0)
+        assert s is not None and s.prepared == ("prepared", 4) and s.replay_size == 100
+        assert node.issued == 4  # taking a batch issued its replacement
+        assert pf.get(timeout_s=1.0) is not None
+        assert node.issued == 5 and len(node.pending) == 3
+    finally:
+        pf.stop()
+
+
+def test_prefetcher_retries_not_ready_timeouts_and_bad_replies_after_a_backoff():
+    node = FakeNode()
+    calls = []
+
+    def prepare(s):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("wrong shape")
+        return "ok"
+
+    pf = make_prefetcher(node, prepare=prepare)
+    try:
+        node.take()(P.SampleReply(request_id=1, status="not_ready", reason="min_size 1000 > size 12").encode())
+        node.take()(None)  # timed out
+        node.take()(b"\x00garbage")
+        wait_until(lambda: node.issued == 6, 5, "three retried requests", 0.005)
+        assert (pf.not_ready, pf.timeouts, pf.errors) == (1, 1, 1)
+        assert pf.last_not_ready_reason == "min_size 1000 > size 12"
+        node.take()(ok_reply())  # prepare raises on this one: counted and retried
+        wait_until(lambda: node.issued == 7, 5, "the retry after a failed prepare", 0.005)
+        assert pf.errors == 2
+        node.take()(ok_reply())
+        s = pf.get(timeout_s=1.0)
+        assert s is not None and s.prepared == "ok"
+    finally:
+        pf.stop()
