@@ -6,6 +6,7 @@ import torch
 
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.evaluator import build_policy_net, play_episodes
+from zenrl.common.networks import NumpyQ
 from zenrl.common.config import RunConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.envs.bw_judge import match_outcome
@@ -25,6 +26,24 @@ def test_cartpole_has_returns_and_no_outcomes():
     rets, outcomes = play_episodes(net, envs, seed=5)
     assert rets.shape == (3,) and rets.dtype == np.float32 and (rets >= 1).all()
     assert outcomes is None
+    envs.close()
+
+
+def test_numpy_forward_plays_the_same_episodes_as_torch():
+    cfg = _cfg({"id": "CartPole-v1"})
+    envs = EnvBatch(cfg.env, 4, seed=0)
+    torch.manual_seed(3)
+    net = build_policy_net(cfg, envs)
+    fast = NumpyQ.of(net)
+    assert fast is not None
+    by_torch, _ = play_episodes(net, envs, seed=11)
+    by_numpy, _ = play_episodes(net, envs, seed=11, fast=fast)
+    np.testing.assert_array_equal(by_numpy, by_torch)
+    with torch.no_grad():  # other weights: the numpy copy follows only after load()
+        for p in net.parameters():
+            p.add_(torch.randn_like(p))
+    fast.load(net)
+    np.testing.assert_array_equal(play_episodes(net, envs, seed=11, fast=fast)[0], play_episodes(net, envs, seed=11)[0])
     envs.close()
 
 
