@@ -88,22 +88,24 @@ class BackgroundSender:
                 return
 
     def _flush(self, items: list[tuple[Any, Any]]) -> None:
-        prios: dict[int, tuple[Any, list, list]] = {}
+        # priorities for one publisher become one message, sent where their first part was queued
+        merged: dict[int, tuple[list, list]] = {}
         out: list[tuple[Any, Any]] = []
         for pub, item in items:
-            if isinstance(item, tuple):
-                if id(pub) not in prios:
-                    prios[id(pub)] = (pub, [], [])
-                    out.append((pub, id(pub)))  # the merged update goes where the first part was
-                prios[id(pub)][1].append(item[0])
-                prios[id(pub)][2].append(item[1])
-            else:
+            if isinstance(item, bytes):
                 out.append((pub, item))
+                continue
+            parts = merged.get(id(pub))
+            if parts is None:
+                parts = merged[id(pub)] = ([], [])
+                out.append((pub, parts))
+            parts[0].append(item[0])
+            parts[1].append(item[1])
         for pub, item in out:
             try:
-                if isinstance(item, int):
-                    _, ks, ps = prios[item]
-                    item = P.PriorityUpdate(keys=np.concatenate(ks), priorities=np.concatenate(ps)).encode(self.max_bytes)
+                if not isinstance(item, bytes):
+                    item = P.PriorityUpdate(keys=np.concatenate(item[0]),
+                                            priorities=np.concatenate(item[1])).encode(self.max_bytes)
                 pub.put(item)
                 self.sent += 1
             except Exception as e:  # zenoh.ZError if the session closed, an encoding error: keep going
