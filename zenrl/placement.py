@@ -81,22 +81,27 @@ def describe(p: dict[str, Placement]) -> str:
 
 def apply_from_env(environ: dict[str, str] | None = None) -> Placement | None:
     """Apply :data:`CPUS_ENV` / :data:`NICE_ENV` to this process (call before starting threads).
-    Returns what was applied, None if nothing was asked. A malformed value or a refused call is
-    logged and skipped: placement is an optimisation, never a reason not to run."""
+    Returns what was applied (each part on its own: CPUs applied and niceness refused gives the
+    CPUs and nice 0), None if nothing was asked or applied. A malformed value or a refused call
+    is logged and skipped: placement is an optimisation, never a reason not to run."""
     env = os.environ if environ is None else environ
     cpus_s, nice_s = env.get(CPUS_ENV, ""), env.get(NICE_ENV, "")
-    if not cpus_s and not nice_s:
-        return None
     cpus: tuple[int, ...] | None = None
     nice = 0
-    try:
-        if cpus_s:
-            cpus = tuple(int(c) for c in cpus_s.split(","))
-            os.sched_setaffinity(0, cpus)
-        if nice_s:
-            nice = int(nice_s)
-            os.nice(nice)
-    except (ValueError, OSError, AttributeError) as e:
-        log.warning("cpu placement %s=%r %s=%r not applied: %s", CPUS_ENV, cpus_s, NICE_ENV, nice_s, e)
+    if cpus_s:
+        try:
+            wanted = tuple(int(c) for c in cpus_s.split(","))
+            os.sched_setaffinity(0, wanted)
+            cpus = wanted
+        except (ValueError, OSError, AttributeError) as e:
+            log.warning("cpu placement %s=%r not applied: %s", CPUS_ENV, cpus_s, e)
+    if nice_s:
+        try:
+            wanted_nice = int(nice_s)
+            os.nice(wanted_nice)
+            nice = wanted_nice
+        except (ValueError, OSError) as e:
+            log.warning("cpu placement %s=%r not applied: %s", NICE_ENV, nice_s, e)
+    if cpus is None and nice == 0:
         return None
     return Placement(cpus, nice)

@@ -73,3 +73,11 @@ def test_bad_placement_is_logged_and_skipped(cpus):
     got = _probe({CPUS_ENV: cpus})
     assert not got["applied"] and got["cpus"] == every
     assert "not applied" in got["stderr"] and CPUS_ENV in got["stderr"]
+
+
+@linux_only
+def test_cpus_apply_when_the_niceness_is_malformed():
+    cpu = sorted(os.sched_getaffinity(0))[-1]
+    got = _probe({CPUS_ENV: str(cpu), NICE_ENV: "high"})
+    assert got["applied"] and got["cpus"] == [cpu]
+    assert "not applied" in got["stderr"] and NICE_ENV in got["stderr"] and CPUS_ENV not in got["stderr"]
