@@ -141,7 +141,8 @@ class SamplePrefetcher:
     """Keeps ``in_flight`` sample requests outstanding and queues ready batches.
 
     ``get(timeout)`` returns a :class:`Sampled` or ``None``; taking a batch issues the request
-    that replaces it, from the consumer's thread (a Zenoh call of a few microseconds), so no
+    that replaces it, from the consumer's thread (a Zenoh call: 50 us alone, ~0.2 ms in a busy
+    learner, measured with py-spy), so no
     thread wakes per batch on the learner's side but Zenoh's own. A not-ready reply, a timeout
     or a bad reply re-issues that request after ``backoff_s`` from a helper thread that sleeps
     otherwise (the replay answers not-ready at once, so this never hangs). ``beta`` is read at
