@@ -110,7 +110,9 @@ class LearnerConfig(_Section):
     send_linger_s: float = Field(0.01, ge=0, le=1.0, description=(
         "Ape-X: the priority/weights sender waits this long after the first queued item and sends all "
         "that gathered (priorities merged into one message), waking once per few updates; 0 sends at once."))
-    device: str = Field("auto", description="torch device: auto (cuda if available), cpu, cuda, cuda:N.")
+    device: str = Field("auto", description=(
+        "torch device: auto (cuda if available), cpu, cuda, cuda:N. A small MLP (CartPole's) updates "
+        "faster on the CPU than on a GPU, where kernel launches dominate."))
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads in the learner.")
     checkpoint_interval_s: float = Field(60.0, gt=0, description="Save a checkpoint this often (and on stop).")
     keep_checkpoints: int = Field(3, ge=1, description="Keep the newest K checkpoints.")
