@@ -37,6 +37,8 @@ DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 #: Cap on the number of arrays in one batch map and on the number of dimensions of an array.
 MAX_FIELDS = 256
 MAX_NDIM = 8
+#: Most items one SampleRequest may ask for.
+MAX_SAMPLE_BATCH = 65536
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 _FIELD_RE = re.compile(r"^[A-Za-z0-9_.\-/]{1,128}$")
@@ -443,8 +445,8 @@ class SampleRequest(Message):
     beta: float
 
     def _validate(self) -> None:
-        if not 1 <= self.batch_size <= 65536:
-            raise ProtocolError("batch_size", f"{self.batch_size} is outside 1..65536", "field")
+        if not 1 <= self.batch_size <= MAX_SAMPLE_BATCH:
+            raise ProtocolError("batch_size", f"{self.batch_size} is outside 1..{MAX_SAMPLE_BATCH}", "field")
         if not 0.0 <= self.beta <= 1.0:
             raise ProtocolError("beta", f"{self.beta} is outside [0, 1]", "field")
 

@@ -152,16 +152,30 @@ class SamplePrefetcher:
     result is the batch's ``prepared`` field: the learner turns the arrays into tensors there, so
     a training step starts on a batch that is ready to use. A reply it raises on is counted in
     ``errors`` and dropped.
+
+    ``batches_per_request`` = k > 1 asks for k * ``batch_size`` items per request and splits
+    the reply into k batches of ``batch_size`` (rows dealt out by a random permutation, so each
+    batch is an unbiased draw from the stratified sample); a replacement request goes out once
+    per k batches taken, so the consumer pays the Zenoh call once per k training steps. The
+    price: a batch's items were drawn up to k * ``in_flight`` batches before it is used, with
+    the priorities of that time.
     """
 
     def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4,
-                 prepare: Callable[[Sampled], Any] | None = None, backoff_s: float = 0.05) -> None:
+                 prepare: Callable[[Sampled], Any] | None = None, backoff_s: float = 0.05,
+                 batches_per_request: int = 1, seed: int | None = None) -> None:
+        if batches_per_request < 1 or batch_size * batches_per_request > P.MAX_SAMPLE_BATCH:
+            raise ValueError(f"batches_per_request={batches_per_request} with batch_size={batch_size}: "
+                             f"need >= 1 and at most {P.MAX_SAMPLE_BATCH} items per request")
         self.client = client
         self.prepare = prepare
         self.batch_size = batch_size
         self.beta_fn = beta_fn
         self.in_flight = in_flight
         self.backoff_s = backoff_s
+        self.per_request = batches_per_request
+        self._perm_rng = np.random.default_rng(seed)
+        self._taken = 0  # batches taken since the last replacement request (consumer's thread only)
         # ready + in flight + waiting for a retry == in_flight at all times
         self._ready: queue.Queue[Sampled] = queue.Queue()
         self._retry = 0
@@ -190,7 +204,7 @@ class SamplePrefetcher:
             return
         try:
             self.client.node.query_async(self.client.keys.sample,
-                                         self.client.request_payload(self.batch_size, self.beta_fn()),
+                                         self.client.request_payload(self.batch_size * self.per_request, self.beta_fn()),
                                          self.client.timeout_s, self._on_reply)
         except Exception as e:  # zenoh.ZError (session closing): counted, retried after the backoff
             self.errors += 1
@@ -231,15 +245,27 @@ class SamplePrefetcher:
             log.warning("bad sample reply: %s", e)
             self._failed()
             return
-        if self.prepare is not None:
-            try:
-                s = replace(s, prepared=self.prepare(s))
-            except Exception as e:  # a batch the learner cannot use: counted, the rest go on
-                self.errors += 1
-                log.warning("could not prepare a sampled batch: %s", e)
-                self._failed()
-                return
-        self._ready.put_nowait(s)
+        try:
+            parts = self._split(s)
+            if self.prepare is not None:
+                parts = [replace(part, prepared=self.prepare(part)) for part in parts]
+        except Exception as e:  # a batch the learner cannot use: counted, the rest go on
+            self.errors += 1
+            log.warning("could not prepare a sampled batch: %s", e)
+            self._failed()
+            return
+        for part in parts:
+            self._ready.put_nowait(part)
+
+    def _split(self, s: Sampled) -> list[Sampled]:
+        k, b = self.per_request, self.batch_size
+        if k == 1:
+            return [s]
+        if len(s.keys) != k * b:
+            raise ProtocolError("keys", f"{len(s.keys)} items in a reply to a request for {k * b}", "shape")
+        rows = self._perm_rng.permutation(k * b).reshape(k, b)
+        return [Sampled(s.keys[r], s.probabilities[r], s.weights[r], {n: a[r] for n, a in s.data.items()}, s.replay_size)
+                for r in rows]
 
     def get(self, timeout_s: float = 1.0) -> Sampled | None:
         """The next ready batch, or ``None`` after ``timeout_s``."""
@@ -247,7 +273,10 @@ class SamplePrefetcher:
             s = self._ready.get(timeout=timeout_s)
         except queue.Empty:
             return None
-        self._issue()
+        self._taken += 1
+        if self._taken == self.per_request:
+            self._taken = 0
+            self._issue()
         return s
 
 

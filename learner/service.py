@@ -215,7 +215,8 @@ class ApexLearnerService(LearnerBase):
         self._latest_weights = self._encode_weights()
         w_pub.put(self._latest_weights)
         pf = SamplePrefetcher(self.client, cfg.batch_size, self.dqn.beta, cfg.requests_in_flight,
-                              prepare=lambda s: self.dqn.batch_to_tensors(s.data, s.weights)).start()
+                              prepare=lambda s: self.dqn.batch_to_tensors(s.data, s.weights),
+                              batches_per_request=cfg.batches_per_request, seed=self.cfg.seed).start()
         upd_rate, smp_rate = RateMeter(), RateMeter()
         last_log = last_ckpt = time.monotonic()
         acc: dict[str, float] = {}

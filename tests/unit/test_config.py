@@ -36,6 +36,9 @@ def test_errors_name_option_and_value(tmp_path):
     with pytest.raises(ConfigError, match=r"evaluator\.policy 'sample' needs algo a3c"):
         load_config(None, ["evaluator.policy=sample"], environ={})
     assert load_config(None, ["algo=a3c", "evaluator.policy=sample"], environ={}).evaluator.policy == "sample"
+    with pytest.raises(ConfigError, match=r"learner\.batch_size \* learner\.batches_per_request = 4096 \* 32"):
+        load_config(None, ["learner.batch_size=4096", "learner.batches_per_request=32"], environ={})
+    assert load_config(None, ["learner.batch_size=4096", "learner.batches_per_request=16"], environ={}).learner.batches_per_request == 16
 
 
 def test_frozen():

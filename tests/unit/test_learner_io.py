@@ -1,9 +1,11 @@
 """The learner's I/O helpers with in-process fakes: the background sender (priorities merged in
-order, failures counted) and the sample prefetcher (requests in flight, retries, prepare)."""
+order, failures counted) and the sample prefetcher (requests in flight, retries, prepare, several
+batches per request)."""
 
 import threading
 
 import numpy as np
+import pytest
 
 from zenrl.common import protocol as P
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
@@ -69,12 +71,14 @@ class FakeNode:
         self.lock = threading.Lock()
         self.pending: list = []
         self.issued = 0
+        self.sizes: list[int] = []
 
     def query_async(self, key, payload, timeout_s, on_reply) -> None:
-        P.SampleRequest.decode(payload)  # a well-formed request
+        req = P.SampleRequest.decode(payload)  # a well-formed request
         with self.lock:
             self.pending.append(on_reply)
             self.issued += 1
+            self.sizes.append(req.batch_size)
 
     def take(self):
         with self.lock:
@@ -85,6 +89,14 @@ def ok_reply(n: int = 4) -> bytes:
     return P.SampleReply(request_id=1, status="ok", replay_size=100, keys=np.arange(n, dtype=np.int64),
                          probabilities=np.full(n, 0.01), weights=np.ones(n, np.float32),
                          data={"obs": np.zeros((n, 3), np.float32)}).encode()
+
+
+def numbered_reply(n: int) -> bytes:
+    """Item i has key i, probability i / 1000, weight i / 100 and observation [i, i, i]."""
+    i = np.arange(n)
+    return P.SampleReply(request_id=1, status="ok", replay_size=100, keys=i.astype(np.int64),
+                         probabilities=i / 1000.0, weights=(i / 100.0).astype(np.float32),
+                         data={"obs": np.repeat(i[:, None], 3, 1).astype(np.float32)}).encode()
 
 
 def make_prefetcher(node, **kw) -> SamplePrefetcher:
@@ -136,3 +148,51 @@ def test_prefetcher_retries_not_ready_timeouts_and_bad_replies_after_a_backoff()
         assert s is not None and s.prepared == "ok"
     finally:
         pf.stop()
+
+
+def test_prefetcher_splits_a_reply_into_batches_and_requests_once_per_k_taken():
+    node = FakeNode()
+    client = ZenohReplayClient(node, P.Keys("unit"), timeout_s=1.0)
+    pf = SamplePrefetcher(client, 4, lambda: 0.4, in_flight=2, backoff_s=0.01, batches_per_request=3, seed=1,
+                          prepare=lambda s: s.keys.copy()).start()
+    try:
+        assert node.sizes == [12, 12]  # k * batch_size items per request
+        node.take()(numbered_reply(12))
+        got = []
+        for i in range(3):
+            s = pf.get(timeout_s=1.0)
+            assert s is not None and len(s.keys) == 4 and s.replay_size == 100
+            # rows stay together: every field of a row belongs to the same item
+            np.testing.assert_array_equal(s.data["obs"][:, 0], s.keys)
+            np.testing.assert_allclose(s.probabilities, s.keys / 1000.0)
+            np.testing.assert_allclose(s.weights, s.keys / 100.0, rtol=1e-6)
+            np.testing.assert_array_equal(s.prepared, s.keys)
+            got.append(s.keys)
+            # the replacement request goes out with the last of the k batches, not before
+            assert node.issued == (2 if i < 2 else 3)
+        keys = np.concatenate(got)
+        np.testing.assert_array_equal(np.sort(keys), np.arange(12))  # each item in exactly one batch
+        assert not np.array_equal(keys, np.arange(12))  # dealt out at random, not in stratum order
+    finally:
+        pf.stop()
+
+
+def test_prefetcher_counts_and_retries_a_reply_of_the_wrong_size():
+    node = FakeNode()
+    client = ZenohReplayClient(node, P.Keys("unit"), timeout_s=1.0)
+    pf = SamplePrefetcher(client, 4, lambda: 0.4, in_flight=1, backoff_s=0.01, batches_per_request=2).start()
+    try:
+        node.take()(numbered_reply(4))  # 4 items for a request of 8
+        wait_until(lambda: node.issued == 2, 5, "the retried request", 0.005)
+        assert pf.errors == 1 and pf.get(timeout_s=0.05) is None
+        node.take()(numbered_reply(8))
+        assert pf.get(timeout_s=1.0) is not None and pf.get(timeout_s=1.0) is not None
+        assert node.issued == 3
+    finally:
+        pf.stop()
+
+
+def test_prefetcher_refuses_more_items_per_request_than_the_protocol_allows():
+    client = ZenohReplayClient(FakeNode(), P.Keys("unit"), timeout_s=1.0)
+    with pytest.raises(ValueError, match="batches_per_request=2 with batch_size=40000"):
+        SamplePrefetcher(client, 40000, lambda: 0.4, batches_per_request=2)
