@@ -31,7 +31,7 @@ from torch.nn import functional as F
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
-from zenrl.common.networks import ActorCritic, num_actions, obs_spec, sample_categorical, to_tensors
+from zenrl.common.networks import ActorCritic, num_actions, obs_spec, sample_categorical, set_compute_threads, to_tensors
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,7 @@ class A3CWorker:
         self.keys = P.Keys(run_id)
         self.id = worker_id
         self.slot = slot
-        torch.set_num_threads(cfg.actor.torch_threads)
+        set_compute_threads(cfg.actor.torch_threads)
         self.envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
         self.spec = obs_spec(self.envs.single_observation_space)
         self.n_actions = num_actions(self.envs.single_action_space)

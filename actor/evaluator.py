@@ -17,7 +17,7 @@ from zenrl.actor.service import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
-from zenrl.common.networks import ActorCritic, NumpyQ, QNetwork, num_actions, obs_spec
+from zenrl.common.networks import ActorCritic, NumpyQ, QNetwork, num_actions, obs_spec, set_compute_threads
 from zenrl.common.policy_io import greedy_actions, sampled_actions
 from zenrl.common.transport import Node
 
@@ -74,7 +74,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:
     """Entry point of ``zenrl evaluator``."""
     ecfg = cfg.evaluator
     keys = P.Keys(run_id)
-    torch.set_num_threads(1)
+    set_compute_threads(1)
     envs = EnvBatch(cfg.env, ecfg.episodes, seed=cfg.seed + ecfg.seed_offset)
     net = build_policy_net(cfg, envs)
     # greedy MLP Q networks act in numpy: a CartPole round of 10 x 500 steps takes 0.14 s instead

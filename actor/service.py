@@ -33,7 +33,7 @@ from zenrl.common.config import RunConfig
 from zenrl.common.errors import ProtocolError, RemoteTimeout
 from zenrl.common.exploration import EpsilonGreedy, elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, num_actions,
-                                   obs_spec, to_tensors)
+                                   obs_spec, set_compute_threads, to_tensors)
 from zenrl.common.policy_io import wrap_selfplay
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
@@ -96,7 +96,7 @@ class ApexActor:
         self.keys = P.Keys(run_id)
         self.id = actor_id
         self.slot = slot
-        torch.set_num_threads(acfg.torch_threads)
+        set_compute_threads(acfg.torch_threads)
         self.envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
         if cfg.selfplay.enabled:  # frozen learner snapshots join the opponents (common/policy_io.py)
             self.envs.envs = wrap_selfplay(self.envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
