@@ -90,7 +90,7 @@ class ActorConfig(_Section):
     ladder_size: Optional[int] = Field(None, ge=1, description="N of the epsilon ladder (default: num_actors).")
     weights_poll_steps: int = Field(1, ge=1, description="Check for new weights every this many batched steps.")
     episode_report_s: float = Field(1.0, gt=0, description="How often finished-episode statistics are published.")
-    torch_threads: int = Field(1, ge=1, description="torch intra-op threads in each actor.")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads and numpy BLAS threads in each actor.")
     max_steps_per_s: Optional[float] = Field(None, gt=0, description="Cap on each actor's env steps per second (all its envs), leaving CPU to the learner on small machines; none by default.")
     backlog_chunks: int = Field(512, ge=0, description="Chunks kept while no replay is reachable (resent when it is back); older ones are dropped and counted.")
 
