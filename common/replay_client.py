@@ -176,7 +176,8 @@ class SamplePrefetcher:
         self.per_request = batches_per_request
         self._perm_rng = np.random.default_rng(seed)
         self._taken = 0  # batches taken since the last replacement request (consumer's thread only)
-        # ready + in flight + waiting for a retry == in_flight at all times
+        # requests in flight + waiting for a retry + those whose batches are ready or partly taken
+        # == in_flight at all times
         self._ready: queue.Queue[Sampled] = queue.Queue()
         self._retry = 0
         self._lock = threading.Lock()
