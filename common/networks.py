@@ -185,7 +185,12 @@ class NumpyQ:
     float32 rounding). For the small MLPs actors run, torch's per-op dispatch costs more than
     the arithmetic (measured: 0.21 ms vs 0.07 ms for a [64, 64] dueling net on 64
     observations). :meth:`of` gives None for networks with conv encoders; call :meth:`load`
-    after the network's weights change."""
+    after the network's weights change.
+
+    The dueling head is linear in the last hidden layer ``h``, so :meth:`load` folds it into
+    one layer: ``V + A - mean(A) = h @ (w_v + W_a - mean_a W_a) + (b_v + b_a - mean(b_a))``
+    (computed in float64, stored as float32): one matmul instead of two plus a mean (a [128,
+    128] net on 64 observations: 38 -> 31 us)."""
 
     def __init__(self, net: "QNetwork") -> None:
         self.names = list(net.encoder.names)
@@ -205,7 +210,13 @@ class NumpyQ:
                     layer.bias.detach().cpu().numpy().astype(np.float32))
 
         self.layers = [wb(m) for m in net.trunk if isinstance(m, nn.Linear)]
-        self.heads = [wb(net.value), wb(net.advantage)] if self.dueling else [wb(net.q)]
+        if not self.dueling:
+            self.head = wb(net.q)
+            return
+        (wv, bv), (wa, ba) = (tuple(x.astype(np.float64) for x in wb(m)) for m in (net.value, net.advantage))
+        w = wv + wa - wa.mean(axis=1, keepdims=True)  # [d, 1] broadcast over the A columns
+        b = bv + ba - ba.mean()
+        self.head = (np.ascontiguousarray(w, np.float32), b.astype(np.float32))
 
     def __call__(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
         parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) for n in self.names]
@@ -217,12 +228,10 @@ class NumpyQ:
                 np.maximum(h, 0.0, out=h)
             else:
                 self.act(h, out=h)
-        if not self.dueling:
-            (w, b), = self.heads
-            return h @ w + b
-        (wv, bv), (wa, ba) = self.heads
-        a = h @ wa + ba
-        return (h @ wv + bv) + (a - a.mean(axis=1, keepdims=True))
+        w, b = self.head
+        q = h @ w
+        q += b
+        return q
 
 
 class ActorCritic(nn.Module):
