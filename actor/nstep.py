@@ -66,13 +66,11 @@ class NStepBlocks:
         self._final: dict[str, np.ndarray] | None = None
         self._act = np.zeros((R, E), np.int64)
         self._rew = np.zeros((R, E), np.float64)
-        self._q_sa = np.zeros((R, E), np.float64)
-        self._v = np.zeros((R, E), np.float64)       # max_a Q(s_t, a)
+        self._q: np.ndarray | None = None            # Q(s_t, .) [R, E, A]: Q(s, a) and V read at emit
         self._term = np.zeros((R, E), bool)
         self._trunc = np.zeros((R, E), bool)
         self._disc = gamma ** np.arange(n_step + 1, dtype=np.float64)
         self._idx: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._ar = np.arange(num_envs)
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray,
@@ -86,10 +84,10 @@ class NStepBlocks:
         if self._obs is None:
             self._obs = {k: np.zeros((self.rows,) + v.shape, v.dtype) for k, v in obs.items()}
             self._final = {k: np.zeros((self.rows,) + v.shape, v.dtype) for k, v in obs.items()}
+            self._q = np.zeros((self.rows,) + q.shape, np.float32)
         for k, v in obs.items():
             self._obs[k][t] = v
-        self._q_sa[t] = q[self._ar, actions]
-        self._v[t] = q.max(1)
+        self._q[t] = q
         self._act[t] = actions
         self._rew[t] = rewards
         self._term[t] = terminated
@@ -123,7 +121,7 @@ class NStepBlocks:
         for arrs in (self._obs, self._final):
             for a in arrs.values():
                 a[:left] = a[keep]
-        for a in (self._act, self._rew, self._q_sa, self._v, self._term, self._trunc):
+        for a in (self._act, self._rew, self._q, self._term, self._trunc):
             a[:left] = a[keep]
         self.t = left
 
@@ -175,10 +173,11 @@ class NStepBlocks:
         m_f = m.ravel()
         data["n"] = m_f.astype(np.uint8)
         # bootstrap values: V(s_{j+n}) from acting, V(final) via value_fn where truncated, 0 where terminated
-        boot = self._v[nxt_row, env]
+        boot = self._q[nxt_row, env].max(axis=1).astype(np.float64)
         boot[flat_ended] = 0.0
         tr_idx = np.flatnonzero(trunc_f)
         if tr_idx.size:
             boot[tr_idx] = value_fn({k[len("next_"):]: data[k][tr_idx] for k in data if k.startswith("next_")})
-        prio = np.abs(R.ravel() + self._disc[m_f] * boot - self._q_sa[:K].ravel()).astype(np.float32)
+        q_sa = np.take_along_axis(self._q[:K], self._act[:K, :, None], axis=2).ravel()
+        prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
         return Block(data, prio, env.copy())
