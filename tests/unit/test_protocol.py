@@ -165,3 +165,19 @@ def test_keys():
             P.Keys(bad)
         with pytest.raises(ProtocolError):
             k.transitions(bad)
+
+
+@pytest.mark.parametrize("order", ["<", ">", "="])
+@pytest.mark.parametrize("name", sorted(P.ALLOWED_DTYPES))
+def test_arrays_of_every_wire_dtype_and_byte_order_round_trip_little_endian(name, order):
+    a = np.arange(6).astype(np.dtype(name).newbyteorder(order)).reshape(2, 3)
+    m = P.encode_array(a)
+    assert m["dtype"] == name and m["shape"] == [2, 3]
+    back = P.decode_array("x", {**m, "data": bytes(m["data"])})
+    assert back.dtype == np.dtype(name) and np.array_equal(back, a)
+
+
+@pytest.mark.parametrize("dtype", [object, "U3", np.complex64, "datetime64[s]"])
+def test_encode_names_an_array_dtype_the_wire_does_not_carry(dtype):
+    with pytest.raises(ProtocolError, match="not a wire dtype"):
+        P.encode_array(np.zeros(2, dtype))
