@@ -30,6 +30,17 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def _max_last(a: np.ndarray) -> np.ndarray:
+    """``a.max(-1)``; for a few actions as a loop of elementwise maxima: numpy's reduction over
+    a short last axis costs ~30 ns a row (40 us for [21, 64, 2]; the loop ~4 us)."""
+    if a.shape[-1] > 16:
+        return a.max(-1)
+    v = a[..., 0].copy()
+    for i in range(1, a.shape[-1]):
+        np.maximum(v, a[..., i], out=v)
+    return v
+
+
 @dataclass
 class Block:
     """Transitions emitted together: ``data`` fields have leading dim B (``obs*``, ``action``
@@ -172,11 +183,12 @@ class NStepBlocks:
         m_f = m.ravel()
         data["n"] = m_f.astype(np.uint8)
         # bootstrap values: V(s_{j+n}) from acting, V(final) via value_fn where truncated, 0 where terminated
-        boot = self._q[nxt_row, env].max(axis=1).astype(np.float64)
+        A = self._q.shape[2]
+        boot = _max_last(self._q).ravel().take(nxt_row * E + env).astype(np.float64)
         boot[flat_ended] = 0.0
         tr_idx = trunc_f.nonzero()[0]
         if tr_idx.size:
             boot[tr_idx] = value_fn({k[len("next_"):]: data[k][tr_idx] for k in data if k.startswith("next_")})
-        q_sa = np.take_along_axis(self._q[:K], self._act[:K, :, None], axis=2).ravel()
+        q_sa = self._q[:K].reshape(-1).take(np.arange(0, K * E * A, A) + self._act[:K].ravel())
         prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
         return Block(data, prio, env.copy())

@@ -86,8 +86,9 @@ def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value):
     return sorted(out)
 
 
-@pytest.mark.parametrize("E,T,n,K", [(4, 60, 3, 5), (3, 41, 1, 1), (2, 50, 5, 16), (5, 30, 3, 64)])
-def test_against_brute_force(E, T, n, K):
+@pytest.mark.parametrize("E,T,n,K,A", [(4, 60, 3, 5, 3), (3, 41, 1, 1, 3), (2, 50, 5, 16, 2), (5, 30, 3, 64, 3),
+                                         (3, 40, 4, 8, 20)])
+def test_against_brute_force(E, T, n, K, A):
     """Every start that has its n steps recorded comes out exactly once (blocks while running,
     the rest at flush), equal to the brute force, priorities included."""
     rng = np.random.default_rng(E * 1000 + T)
@@ -95,8 +96,8 @@ def test_against_brute_force(E, T, n, K):
     rew = rng.normal(size=(T, E))
     term = rng.random((T, E)) < 0.08
     trunc = (rng.random((T, E)) < 0.05) & ~term
-    q = rng.normal(size=(T + 1, E, 3))
-    act = rng.integers(0, 3, (T, E))
+    q = rng.normal(size=(T + 1, E, A))
+    act = rng.integers(0, A, (T, E))
     obs_id = np.arange(T + 1)[:, None] * 10 + np.arange(E)[None, :]
     final_value = lambda ids: np.asarray(ids, np.float64) * 1e-5  # noqa: E731
     b = NStepBlocks(E, n, gamma, block_steps=K)
