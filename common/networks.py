@@ -180,7 +180,8 @@ def set_compute_threads(n: int) -> None:
 
 
 class NumpyQ:
-    """A numpy copy of an MLP-only :class:`QNetwork` for acting on the CPU: flat observations
+    """A numpy copy of an MLP-only :class:`QNetwork` (its Q values) or :class:`ActorCritic` (its
+    policy logits; the value MLP is left out) for acting on the CPU: flat observations
     ``{name: array[B, ...]}`` -> float32[B, A], the same values as the network's forward (to
     float32 rounding). For the small MLPs actors run, torch's per-op dispatch costs more than
     the arithmetic (measured: 0.21 ms vs 0.07 ms for a [64, 64] dueling net on 64
@@ -192,26 +193,26 @@ class NumpyQ:
     (computed in float64, stored as float32): one matmul instead of two plus a mean (a [128,
     128] net on 64 observations: 38 -> 31 us)."""
 
-    def __init__(self, net: "QNetwork") -> None:
+    def __init__(self, net: "QNetwork | ActorCritic") -> None:
         self.names = list(net.encoder.names)
         self.act = np.tanh if isinstance(net.trunk[1], nn.Tanh) else None
-        self.dueling = net.dueling
+        self.dueling = isinstance(net, QNetwork) and net.dueling
         self.load(net)
 
     @staticmethod
     def of(net: nn.Module) -> "NumpyQ | None":
-        if not isinstance(net, QNetwork) or not all(isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
+        if not isinstance(net, (QNetwork, ActorCritic)) or not all(isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
             return None
         return NumpyQ(net)
 
-    def load(self, net: "QNetwork") -> None:
+    def load(self, net: "QNetwork | ActorCritic") -> None:
         def wb(layer: nn.Linear) -> tuple[np.ndarray, np.ndarray]:
             return (np.ascontiguousarray(layer.weight.detach().cpu().numpy().T, np.float32),
                     layer.bias.detach().cpu().numpy().astype(np.float32))
 
         self.layers = [wb(m) for m in net.trunk if isinstance(m, nn.Linear)]
         if not self.dueling:
-            self.head = wb(net.q)
+            self.head = wb(net.policy if isinstance(net, ActorCritic) else net.q)
             return
         (wv, bv), (wa, ba) = (tuple(x.astype(np.float64) for x in wb(m)) for m in (net.value, net.advantage))
         w = wv + wa - wa.mean(axis=1, keepdims=True)  # [d, 1] broadcast over the A columns

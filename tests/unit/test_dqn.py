@@ -9,7 +9,7 @@ import torch
 from zenrl.actor.service import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import NetworkConfig
-from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, obs_spec,
+from zenrl.common.networks import (ActorCritic, NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, obs_spec,
                                    params_to_arrays)
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.dqn import double_dqn_target, dqn_loss
@@ -130,6 +130,25 @@ def test_numpy_q_equals_torch_forward(activation, dueling):
     assert not np.allclose(fast(obs), ref2, atol=1e-3)
     fast.load(net)
     np.testing.assert_allclose(fast(obs), ref2, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("activation,shared", [("tanh", False), ("relu", True)])
+def test_numpy_copy_of_an_actor_critic_gives_its_policy_logits(activation, shared):
+    spec = {"obs/lidar": ArraySpec((6,), "float32"), "obs/pose": ArraySpec((3,), "float32")}
+    torch.manual_seed(0)
+    net = ActorCritic(spec, 4, NetworkConfig(hidden=[32, 16], activation=activation, shared_torso=shared)).eval()
+    with torch.no_grad():  # orthogonal init gives the policy head tiny weights: make them count
+        net.policy.weight.mul_(100.0)
+        net.policy.bias.normal_()
+    fast = NumpyQ.of(net)
+    assert fast is not None
+    obs = {k: np.random.default_rng(1).normal(size=(9, *v.shape)).astype(np.float32) for k, v in spec.items()}
+    with torch.no_grad():
+        logits, _ = net({k: torch.from_numpy(v) for k, v in obs.items()})
+    got = fast(obs)
+    assert got.shape == (9, 4)
+    np.testing.assert_allclose(got, logits.numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(got.argmax(1), logits.numpy().argmax(1))
 
 
 def test_numpy_q_declines_conv_networks():

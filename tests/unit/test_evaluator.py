@@ -29,8 +29,10 @@ def test_cartpole_has_returns_and_no_outcomes():
     envs.close()
 
 
-def test_numpy_forward_plays_the_same_episodes_as_torch():
+@pytest.mark.parametrize("algo", ["apex", "a3c"])
+def test_numpy_forward_plays_the_same_episodes_as_torch(algo):
     cfg = _cfg({"id": "CartPole-v1"})
+    cfg = cfg.model_copy(update={"algo": algo})
     envs = EnvBatch(cfg.env, 4, seed=0)
     torch.manual_seed(3)
     net = build_policy_net(cfg, envs)
