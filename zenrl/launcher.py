@@ -206,8 +206,10 @@ class Launcher:
             self._spawn(c, ["--auto-resume"] if c.role == "learner" and "--resume" not in c.args else None)
 
     def _terminate(self) -> None:
-        order = [[c for c in self.children if c.role in ("actor", "evaluator")],
-                 [c for c in self.children if c.role == "learner"],
+        # the replay last, so that actors' final chunks reach it; the learner needs nothing from
+        # the actors to save its checkpoint, so it stops with them (one exit wait, ~1-1.5 s on 2
+        # cores with torch's interpreter teardown, instead of two in a row)
+        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner")],
                  [c for c in self.children if c.role == "replay"]]
         for group in order:
             for c in group:

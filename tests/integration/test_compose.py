@@ -389,7 +389,7 @@ class LocalCluster:
 
     def down(self) -> dict[str, list[int]]:
         codes = {}
-        for name in ("actor", "evaluator", "learner", "replay"):  # the order `zenrl run` uses
+        for name in ("actor", "evaluator", "learner", "replay"):  # the replay last, as `zenrl run` does
             codes[name] = self.stop(name)
         for name in list(self.running):
             codes[name] = self.stop(name)
