@@ -60,8 +60,7 @@ class Watch:
             return self.stats.get(name, {}).get(field, default)
 
 
-def test_kill_actor_learner_replay_and_recover(tmp_path):
-    run_id = "chaos"
+def test_kill_actor_learner_replay_and_recover(tmp_path, run_id):
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_apex.yaml", "--run-id", run_id,
@@ -130,10 +129,9 @@ def test_kill_actor_learner_replay_and_recover(tmp_path):
     assert not [p for role in ("actor", "learner", "replay", "evaluator") for p in _pids(run_id, role)]
 
 
-def test_a3c_learner_killed_resumes_from_checkpoint(tmp_path):
+def test_a3c_learner_killed_resumes_from_checkpoint(tmp_path, run_id):
     """A3C: SIGKILL the parameter server mid-run; the launcher restarts it from its checkpoint,
     the parameter version continues upward, and the workers' gradients are applied again."""
-    run_id = "chaos-a3c"
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_a3c.yaml", "--run-id", run_id,

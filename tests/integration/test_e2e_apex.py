@@ -18,8 +18,7 @@ def _leftovers(run_id: str) -> list[int]:
     return zenrl_pids(run_id)
 
 
-def test_zenrl_run_learns_cartpole(tmp_path):
-    run_id = "e2e-apex"
+def test_zenrl_run_learns_cartpole(tmp_path, run_id):
     p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "max_updates=5000", "max_wall_s=600",
                                  "target_return=null", "evaluator.interval_s=3")
     assert p.returncode == 0, (p.stderr[-3000:], logs)

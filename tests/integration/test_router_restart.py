@@ -43,11 +43,13 @@ def test_router_restart_and_status(run_id, procs):
         assert set(roles) >= {"replay", "actor"}, status
         assert roles["replay"]["size"] > 0 and roles["actor"]["env_steps"] > 0
 
+        # the replay's count before the outage: anything beyond it was delivered after the restart
+        before = _replay_inserted(ep, keys)
+        assert before > 500, before
         router.close()
-        time.sleep(3.0)  # the outage: nothing can be delivered while the router is down
+        time.sleep(3.0)  # the outage itself (its length, not a wait for a condition)
         assert actor.poll() is None, "the actor died with the router"
         router = open_router([ep])
-        before = _replay_inserted(ep, keys)
         wait_until(lambda: _replay_inserted(ep, keys) > before + 500, 120, "data flowing again after the restart")
         assert actor.poll() is None
     finally:

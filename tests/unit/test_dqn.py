@@ -8,11 +8,11 @@ import torch
 
 from zenrl.actor.service import WeightsFollower
 from zenrl.common import protocol as P
-from zenrl.common.config import NetworkConfig
+from zenrl.common.config import LearnerConfig, NetworkConfig
 from zenrl.common.networks import (ActorCritic, NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, obs_spec,
                                    params_to_arrays)
 from zenrl.common.specs import ArraySpec
-from zenrl.learner.dqn import double_dqn_target, dqn_loss
+from zenrl.learner.dqn import DQNLearner, double_dqn_target, dqn_loss
 
 
 def test_double_dqn_target_by_hand():
@@ -37,6 +37,76 @@ def test_weighted_huber_loss_by_hand():
     torch.testing.assert_close(td, torch.tensor([0.5, 3.0]))
     loss.backward()
     torch.testing.assert_close(q.grad, torch.tensor([[0.0, -0.25], [-0.25, 0.0]]))
+
+
+def test_learner_update_matches_a_step_computed_by_hand():
+    """One DQNLearner.update against numpy: a 3-2-2 ReLU net (online and target set by hand and
+    different), double-DQN n-step targets, IS-weighted Huber loss, backprop, gradient clipping
+    and Adam's first step. Swapping online and target, dropping a weight, the discount or the
+    clip each changes the result."""
+    W1 = np.array([[0.5, -0.2, 0.1], [0.3, 0.4, -0.1]])
+    b1 = np.array([0.1, 0.2])
+    W2 = np.array([[1.0, -0.5], [0.2, 0.8]])
+    b2 = np.array([0.05, -0.05])
+    T1, t1, T2, t2 = W1 * 0.5, b1 + 0.3, W2[::-1] * 2.0, b2 * -3.0  # the target net
+    obs = np.array([[1.0, 0.5, 0.2], [0.4, 1.0, 0.3], [0.9, 0.1, 1.2]])
+    nxt = np.array([[0.8, 0.9, 0.1], [1.1, 0.2, 0.4], [0.3, 0.7, 0.9]])
+    action = np.array([0, 1, 1])
+    reward = np.array([1.0, -0.5, 2.0])
+    n = np.array([3, 1, 2])
+    terminated = np.array([False, False, True])
+    isw = np.array([1.0, 0.5, 0.25])
+    gamma, delta, clip, lr, eps = 0.9, 1.0, 0.5, 0.01, 1e-3
+
+    def forward(x, A1, a1, A2, a2):
+        pre = x @ A1.T + a1
+        h = np.maximum(pre, 0.0)
+        return pre, h, h @ A2.T + a2
+
+    _, _, q_next_on = forward(nxt, W1, b1, W2, b2)
+    _, _, q_next_tg = forward(nxt, T1, t1, T2, t2)
+    a_star = q_next_on.argmax(1)
+    y = reward + gamma ** n * (1 - terminated) * q_next_tg[np.arange(3), a_star]
+    pre, h, q = forward(obs, W1, b1, W2, b2)
+    q_sa = q[np.arange(3), action]
+    err = q_sa - y
+    huber = np.where(np.abs(err) <= delta, 0.5 * err ** 2, delta * (np.abs(err) - 0.5 * delta))
+    loss = np.mean(isw * huber)
+    dq = np.zeros_like(q)
+    dq[np.arange(3), action] = isw * np.clip(err, -delta, delta) / 3
+    gW2, gb2 = dq.T @ h, dq.sum(0)
+    dpre = (dq @ W2) * (pre > 0)
+    gW1, gb1 = dpre.T @ obs, dpre.sum(0)
+    grads = [gW1, gb1, gW2, gb2]
+    norm = np.sqrt(sum((g ** 2).sum() for g in grads))
+    grads = [g * min(1.0, clip / (norm + 1e-6)) for g in grads]
+    # Adam's first step: m_hat = g, v_hat = g^2
+    expected = [p - lr * g / (np.abs(g) + eps) for p, g in zip((W1, b1, W2, b2), grads)]
+
+    spec = {"obs": ArraySpec((3,), "float32")}
+    learner = DQNLearner(spec, 2, NetworkConfig(hidden=[2], dueling=False),
+                         LearnerConfig(lr=lr, adam_eps=eps, gamma=gamma, huber_delta=delta, grad_clip=clip,
+                                       target_update_period=1000, optimizer="adam"), torch.device("cpu"))
+    f32 = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
+    with torch.no_grad():
+        for net, (A1, a1, A2, a2) in ((learner.online, (W1, b1, W2, b2)), (learner.target, (T1, t1, T2, t2))):
+            lin1, lin2 = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+            lin1.weight.copy_(f32(A1)), lin1.bias.copy_(f32(a1)), lin2.weight.copy_(f32(A2)), lin2.bias.copy_(f32(a2))
+    data = {"obs": obs.astype(np.float32), "next_obs": nxt.astype(np.float32), "action": action.astype(np.int64),
+            "reward": reward.astype(np.float32), "n": n.astype(np.uint8), "terminated": terminated}
+    metrics, priorities = learner.update(learner.batch_to_tensors(data, isw.astype(np.float32)))
+
+    assert norm > clip, "the example must exercise the clip"
+    assert metrics["loss"] == pytest.approx(loss, rel=1e-5)
+    assert metrics["grad_norm"] == pytest.approx(norm, rel=1e-5)
+    np.testing.assert_allclose(priorities, np.abs(err), rtol=1e-5)
+    lin1, lin2 = [m for m in learner.online.modules() if isinstance(m, torch.nn.Linear)]
+    got = [lin1.weight, lin1.bias, lin2.weight, lin2.bias]
+    for name, g, e in zip(("W1", "b1", "W2", "b2"), got, expected):
+        np.testing.assert_allclose(g.detach().numpy(), e, rtol=1e-5, atol=1e-7, err_msg=name)
+    # the target network is untouched until its period
+    np.testing.assert_allclose([m for m in learner.target.modules() if isinstance(m, torch.nn.Linear)][0].weight.numpy(),
+                               T1, rtol=1e-6)
 
 
 def test_networks_on_dict_and_image_observations():
