@@ -45,9 +45,6 @@ class ArraySpec:
         """Bytes of one item of this field."""
         return int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
 
-    def to_wire(self) -> dict[str, Any]:
-        return {"shape": list(self.shape), "dtype": self.dtype}
-
 
 #: A transition spec: field name -> spec of one item.
 Spec = Mapping[str, ArraySpec]

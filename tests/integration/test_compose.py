@@ -768,3 +768,14 @@ def test_docker_secure_cluster_refuses_strangers_and_forged_weights(docker_image
         finally:
             cluster.cleanup()
     assert all(c == 0 for c in codes.values()), f"exit codes: {codes}"
+
+
+@pytest.mark.parametrize("workdir", ["/app", "/tmp"])
+def test_docker_image_runs_zenrl_run_from_any_directory(docker_images, workdir):
+    """`zenrl run` (the launcher and the children it starts) inside the image, from its working
+    directory and from another: no source tree shadows the installed package."""
+    r = subprocess.run(["docker", "run", "--rm", "-w", workdir, docker_images["ZENRL_IMAGE"], "run",
+                        "--config", "/app/configs/cartpole_apex.yaml", "--no-progress", "--set", "max_updates=200",
+                        "--set", "target_return=null", "--set", "max_wall_s=240"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "max_updates 200 reached" in r.stdout + r.stderr, docker_output(r)
