@@ -659,12 +659,13 @@ def test_docker_cluster_up_scale_resume_crash_down(docker_images, run_id):
     actors, stop + up resumes, a crashed learner process is restarted and resumes, down."""
     cluster = DockerCluster((COMPOSE,), run_id, docker_images, actors=2)
     try:
-        t_up = time.monotonic()
+        t0 = time.monotonic()
         cluster.compose("up", "-d", "--build", timeout=900)
+        t_up = time.monotonic()  # the containers run from here (the images were built by the fixture)
         mon = Monitor(cluster.endpoint, run_id)
         try:
             wait_for(lambda: mon.updates() >= 1, max(1.0, 60 - (time.monotonic() - t_up)),
-                     "the first learner update within 60 s of `up`", cluster, "learner")
+                     f"the first learner update within 60 s of `up` (which took {t_up - t0:.0f} s)", cluster, "learner")
             wait_for(lambda: mon.evals, 120, "an evaluation", cluster, "evaluator")
             everyone = lambda n: lambda roles: roles.count("actor") == n and {"learner", "replay", "evaluator"} <= set(roles)  # noqa: E731
             _wait_roles(cluster, everyone(2), 60, "status listing the replay, the learner, the evaluator and 2 actors")
