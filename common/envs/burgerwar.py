@@ -357,6 +357,17 @@ class BurgerWarEnv(gym.Env):
         return (self._reader.reads(red, blue, geo.BLUE_MARKERS),
                 self._reader.reads(blue, red, geo.RED_MARKERS))
 
+    def _serve_reads(self, red: list[int], blue: list[int]) -> list[dict]:
+        """One judge tick. The real judge serves requests one at a time, in whatever order they
+        arrive; when both robots read in the same tick, a fair coin (from ``np_random``, drawn
+        only then) says whether the agent's requests come first, so neither side is favoured
+        and a mirrored episode with the same seed mirrors this too."""
+        order = "rb"
+        if red and blue:
+            agent_first = bool(self.np_random.random() < 0.5)
+            order = "rb" if agent_first == (self.agent_side == 0) else "br"
+        return self.judge.read(red, blue, order)
+
     def _obs(self, k: int, lidar: np.ndarray, image: bool | None = None):
         x, y, yaw = geo.to_frame(*self._poses[k], k)
         jt = self.judge
@@ -476,7 +487,7 @@ class BurgerWarEnv(gym.Env):
                 yaw = [self._poses[0, 2], self._poses[1, 2]]
                 stale = False
                 jt.time = self._n * dt
-                captures += jt.read(*self._reads_both())
+                captures += self._serve_reads(*self._reads_both())
             jt.set_time(self._n * dt)
             if jt.done:
                 break
