@@ -217,3 +217,25 @@ def test_match_outcome_counts_like_the_contest():
     assert match_outcome(_info("red", 2, 2, "draw")) == ("draw", 2, 2)
     assert match_outcome(_info("red", 0, 0)) == ("draw", 0, 0)
     assert match_outcome({"TimeLimit.truncated": True}) is None
+
+
+def test_env_sudden_death_ends_with_stop_when_the_agent_scores():
+    """The real env: tied at match_time -> sudden death (game[1] = 1) goes on; the agent's read
+    makes the scores differ -> terminated, state "stop", with sudden-death time left."""
+    import math
+
+    from zenrl.common.envs.burgerwar import BurgerWarEnv
+
+    env = BurgerWarEnv(opponents="idle", lidar_noise=0.0, match_time=0.5, sudden_death_time=5.0)
+    try:
+        env.reset(seed=0)
+        for _ in range(10):
+            obs, _, term, _, info = env.step(2)
+            assert not term and info["war_state"]["state"] == "running"
+        assert obs["game"][1] == 1.0  # sudden death, tied 0 - 0
+        env.set_poses((0.0, -0.75, math.pi / 2), (0.0, 1.3, -math.pi / 2))  # facing FriedShrimp_S
+        _, _, term, _, info = env.step(2)
+        assert term and info["war_state"]["state"] == "stop" and info["winner"] == "r"
+        assert info["war_state"]["time"] < 5.5
+    finally:
+        env.close()
