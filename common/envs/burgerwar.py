@@ -60,6 +60,23 @@ _VIEW_INDEX = (_view_index(0), _view_index(1))
 _MASK_LUT = (np.array([1.0, 0.0, 2.0], np.float32), np.array([1.0, 2.0, 0.0], np.float32))
 
 
+def _number(name: str, v) -> float:
+    """``v`` as a float, or a ValueError naming the option."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {v!r}") from None
+
+
+def _pair(name: str, v) -> tuple[float, float]:
+    """``v`` as two floats, or a ValueError naming the option."""
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair of numbers, got {v!r}") from None
+    return a, b
+
+
 def _clip(v, lim: float) -> float:
     v = float(v)
     return -lim if v < -lim else lim if v > lim else v
@@ -235,18 +252,17 @@ class BurgerWarEnv(gym.Env):
                              f"got reward={reward!r}")
         if lidar_invalid not in LIDAR_INVALID:
             raise ValueError(f"lidar_invalid must be one of {LIDAR_INVALID}, got {lidar_invalid!r}")
-        if not 0.0 <= float(lidar_dropout) < 1.0:
+        if not 0.0 <= _number("lidar_dropout", lidar_dropout) < 1.0:
             raise ValueError(f"lidar_dropout must be in [0, 1), got {lidar_dropout!r}")
         if float(lidar_dropout) > 0 and lidar_invalid == "clip":
             raise ValueError("lidar_dropout needs lidar_invalid='zero' or 'inf' (a dropped beam "
                              "reads invalid), got lidar_invalid='clip'")
         for name, v in (("pose_noise", pose_noise), ("pose_noise_yaw", pose_noise_yaw)):
-            if not float(v) >= 0:
+            if not _number(name, v) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {v!r}")
-        if len(pose_update) != 2 or not all(float(v) > 0 for v in pose_update):
+        if not all(v > 0 for v in _pair("pose_update", pose_update)):
             raise ValueError(f"pose_update must be (metres > 0, radians > 0), got {pose_update!r}")
-        if accel_limit is not None and (len(accel_limit) != 2
-                                        or not all(float(v) > 0 for v in accel_limit)):
+        if accel_limit is not None and not all(v > 0 for v in _pair("accel_limit", accel_limit)):
             raise ValueError(f"accel_limit must be None or (m/s^2 > 0, rad/s^2 > 0), got {accel_limit!r}")
 
     # ------------------------------------------------------------------------- spaces

@@ -160,6 +160,10 @@ def test_pose_options_validated():
         BurgerWarEnv(pose_noise=-0.1)
     with pytest.raises(ValueError, match="pose_update must be"):
         BurgerWarEnv(pose_update=(0.0, 0.1))
+    with pytest.raises(ValueError, match="pose_update must be a pair of numbers"):
+        BurgerWarEnv(pose_update=0.1)
+    with pytest.raises(ValueError, match="pose_noise_yaw must be a number"):
+        BurgerWarEnv(pose_noise_yaw="small")
 
 
 # ------------------------------------------------------------------ acceleration
@@ -195,8 +199,14 @@ def test_burger_accel_is_nearly_instant_at_10_hz(make):
 def test_accel_limit_validated():
     with pytest.raises(ValueError, match="accel_limit must be None or"):
         BurgerWarEnv(accel_limit=(0.0, 1.0))
-    with pytest.raises(ValueError, match="accel_limit must be None or"):
+    with pytest.raises(ValueError, match="accel_limit must be a pair of numbers"):
         BurgerWarEnv(accel_limit=(1.0,))
+    # a YAML / JSON list works like a tuple
+    env = BurgerWarEnv(accel_limit=[2.5, 3.0], pose_update=[0.2, 0.3])
+    try:
+        assert env.accel_limit == (2.5, 3.0) and env.pose_update == (0.2, 0.3)
+    finally:
+        env.close()
 
 
 # ------------------------------------------------------------------ judge serving order
