@@ -34,6 +34,14 @@ USERS_ACTIONS = ((0.2, 0.0), (-0.2, 0.0), (0.0, 0.0), (0.0, 0.5233), (0.0, -0.52
 #: "rich": 3 speeds x 5 turn rates
 RICH_ACTIONS = tuple((v, w) for v in (0.22, 0.0, -0.15) for w in (0.0, 0.5233, -0.5233, 1.4, -1.4))
 REWARDS = ("users", "zero_sum", "sparse")
+MARKER_VALUES = ("unit", "points")
+LIDAR_INVALID = ("clip", "zero", "inf")
+#: AMCL's update thresholds in the contest kit's navigation bots (amcl.yaml: update_min_d,
+#: update_min_a): the pose estimate is corrected after moving 0.1 m or turning 0.1 rad
+AMCL_UPDATE = (0.1, 0.1)
+#: the burger's acceleration limits in the contest kit's DWA planner parameters
+#: (dwa_local_planner_params_burger.yaml: acc_lim_x 2.5 m/s^2, acc_lim_theta 3.0 rad/s^2)
+BURGER_ACCEL = (2.5, 3.0)
 
 # observation bounds
 _SCORE_NORM = 10.0
@@ -50,6 +58,23 @@ def _view_index(side: int) -> np.ndarray:
 _VIEW_INDEX = (_view_index(0), _view_index(1))
 #: owner code (0 neutral, 1 red, 2 blue) -> mask value (0 mine, 1 neutral, 2 enemy's)
 _MASK_LUT = (np.array([1.0, 0.0, 2.0], np.float32), np.array([1.0, 2.0, 0.0], np.float32))
+
+
+def _number(name: str, v) -> float:
+    """``v`` as a float, or a ValueError naming the option."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {v!r}") from None
+
+
+def _pair(name: str, v) -> tuple[float, float]:
+    """``v`` as two floats, or a ValueError naming the option."""
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair of numbers, got {v!r}") from None
+    return a, b
 
 
 def _clip(v, lim: float) -> float:
@@ -90,6 +115,18 @@ class BurgerWarEnv(gym.Env):
         reward penalties (robot closer than wall_dist to the arena wall; farther than far_dist
         from the centre).
       start_noise (0.0): sigma (m, and rad x 2) of a gaussian jitter of the start poses.
+      marker_values ("unit"): "unit" (the users' reward: every marker +-1) or "points" (each
+        marker worth its points: field 1, robot side 3, back 5); users' reward only.
+      lidar_invalid ("clip"): what the observed lidar shows for a reading outside 0.12-3.5 m:
+        "clip" (clipped into the range), "zero" (0.0, the real LDS-01 driver) or "inf" (inf,
+        the Gazebo sensor). lidar_dropout (0.0): probability that a beam reads invalid anyway
+        ("zero"/"inf" only). Scripted opponents always see the clipped scan.
+      pose_noise (0.0), pose_noise_yaw (0.0), pose_update ((0.1, 0.1)): AMCL-like error of the
+        observed pose: a gaussian offset (sigma m, rad) held until the robot has moved
+        pose_update[0] m or turned pose_update[1] rad since the last draw (AMCL's update_min_d,
+        update_min_a), then drawn anew.
+      accel_limit (None): (m/s^2, rad/s^2) acceleration limits of both robots (the commanded
+        speeds ramp at most this fast; e.g. BURGER_ACCEL); None = speed changes at once.
       render_mode (None | "rgb_array"), render_size (256): top-down numpy rendering.
       max_steps (None): truncate after that many agent steps (the match ends by itself).
 
@@ -115,7 +152,11 @@ class BurgerWarEnv(gym.Env):
                  match_time: float = 180.0, sudden_death_time: float = 60.0, call_diff: int = 10,
                  win_bonus: float = 5.0, wall_dist: float = 0.2, wall_penalty: float = -0.5,
                  far_dist: float = 1.0, far_penalty: float = -0.5, start_noise: float = 0.0,
-                 render_size: int = 256, max_steps: int | None = None):
+                 render_size: int = 256, max_steps: int | None = None,
+                 marker_values: str = "unit", lidar_invalid: str = "clip",
+                 lidar_dropout: float = 0.0, pose_noise: float = 0.0, pose_noise_yaw: float = 0.0,
+                 pose_update: Sequence[float] = AMCL_UPDATE,
+                 accel_limit: Sequence[float] | None = None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"unsupported render_mode {render_mode!r}")
         if side not in ("red", "blue", "random"):
@@ -124,6 +165,8 @@ class BurgerWarEnv(gym.Env):
             raise ValueError(f"reward must be one of {REWARDS}")
         if flatten_obs and image:
             raise ValueError("flatten_obs is only available for the vector variant")
+        self._check_conventions(reward, marker_values, lidar_invalid, lidar_dropout, pose_noise,
+                                pose_noise_yaw, pose_update, accel_limit)
         for name, hz in (("control_hz", control_hz), ("capture_hz", capture_hz)):
             if hz <= 0 or physics_hz % hz:
                 raise ValueError(f"{name}={hz} must divide physics_hz={physics_hz}")
@@ -147,6 +190,15 @@ class BurgerWarEnv(gym.Env):
         self.far_dist, self.far_penalty = float(far_dist), float(far_penalty)
         self.start_noise = float(start_noise)
         self.max_steps = max_steps
+        self.marker_values = marker_values
+        self._marker_weights = (geo.TARGET_POINTS.astype(np.float64) if marker_values == "points"
+                                else np.ones(geo.N_TARGETS))
+        self.lidar_invalid = lidar_invalid
+        self.lidar_dropout = float(lidar_dropout)
+        self._lidar_fill = {"zero": 0.0, "inf": np.inf}.get(lidar_invalid)
+        self.pose_noise, self.pose_noise_yaw = float(pose_noise), float(pose_noise_yaw)
+        self.pose_update = (float(pose_update[0]), float(pose_update[1]))
+        self.accel_limit = None if accel_limit is None else (float(accel_limit[0]), float(accel_limit[1]))
         self.judge = Judge(match_time, sudden_death_time, call_diff)
 
         # opponents
@@ -189,6 +241,30 @@ class BurgerWarEnv(gym.Env):
         self._client = -1
         self._build_world()
 
+    @staticmethod
+    def _check_conventions(reward, marker_values, lidar_invalid, lidar_dropout, pose_noise,
+                           pose_noise_yaw, pose_update, accel_limit) -> None:
+        """The contestants' conventions (marker points, lidar, AMCL pose, acceleration)."""
+        if marker_values not in MARKER_VALUES:
+            raise ValueError(f"marker_values must be one of {MARKER_VALUES}, got {marker_values!r}")
+        if marker_values != "unit" and reward != "users":
+            raise ValueError(f"marker_values={marker_values!r} applies to reward='users' only, "
+                             f"got reward={reward!r}")
+        if lidar_invalid not in LIDAR_INVALID:
+            raise ValueError(f"lidar_invalid must be one of {LIDAR_INVALID}, got {lidar_invalid!r}")
+        if not 0.0 <= _number("lidar_dropout", lidar_dropout) < 1.0:
+            raise ValueError(f"lidar_dropout must be in [0, 1), got {lidar_dropout!r}")
+        if float(lidar_dropout) > 0 and lidar_invalid == "clip":
+            raise ValueError("lidar_dropout needs lidar_invalid='zero' or 'inf' (a dropped beam "
+                             "reads invalid), got lidar_invalid='clip'")
+        for name, v in (("pose_noise", pose_noise), ("pose_noise_yaw", pose_noise_yaw)):
+            if not _number(name, v) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {v!r}")
+        if not all(v > 0 for v in _pair("pose_update", pose_update)):
+            raise ValueError(f"pose_update must be (metres > 0, radians > 0), got {pose_update!r}")
+        if accel_limit is not None and not all(v > 0 for v in _pair("accel_limit", accel_limit)):
+            raise ValueError(f"accel_limit must be None or (m/s^2 > 0, rad/s^2 > 0), got {accel_limit!r}")
+
     # ------------------------------------------------------------------------- spaces
     def _make_obs_space(self) -> spaces.Space:
         h = geo.ARENA_HALF_DIAG
@@ -196,7 +272,8 @@ class BurgerWarEnv(gym.Env):
         tmax = (jt.match_time + jt.sudden_death_time) / jt.match_time
         smax = _MAX_SCORE / _SCORE_NORM
         parts = {
-            "lidar": (np.full(geo.LIDAR_BEAMS, geo.LIDAR_MIN), np.full(geo.LIDAR_BEAMS, geo.LIDAR_MAX)),
+            "lidar": (np.full(geo.LIDAR_BEAMS, geo.LIDAR_MIN if self._lidar_fill != 0.0 else 0.0),
+                      np.full(geo.LIDAR_BEAMS, geo.LIDAR_MAX if self._lidar_fill != np.inf else np.inf)),
             "pose": (np.array([-h, -h, -1, -1]), np.array([h, h, 1, 1])),
             "mask": (np.zeros(geo.N_TARGETS), np.full(geo.N_TARGETS, 2.0)),
             "game": (np.zeros(4), np.array([tmax, 1.0, smax, smax])),
@@ -292,6 +369,9 @@ class BurgerWarEnv(gym.Env):
         self._poses = np.array([geo.RED_START, geo.BLUE_START], dtype=np.float64)
         self._reader = geo.MarkerReader(self.read_range, self._cos_read)
         self._cmd = [(0.0, 0.0), (0.0, 0.0)]
+        self._vel = [(0.0, 0.0), (0.0, 0.0)]
+        self._pose_err = np.zeros((2, 3))
+        self._pose_ref: list[np.ndarray | None] = [None, None]
 
     # ------------------------------------------------------------------------- physics helpers
     def _read_poses(self) -> None:
@@ -326,19 +406,47 @@ class BurgerWarEnv(gym.Env):
 
     # ------------------------------------------------------------------------- sensors
     def _scan(self, k: int) -> np.ndarray:
-        """Noisy, clipped float32[360] lidar of robot k (0 red, 1 blue)."""
+        """Noisy float32[360] lidar of robot k (0 red, 1 blue), not yet clipped."""
         return self._scans((k,))[0]
 
     def _scans(self, ks: Sequence[int]) -> list[np.ndarray]:
-        """Lidar of the robots ``ks`` in one vectorised call (noise drawn in that order)."""
+        """Noisy lidar of the robots ``ks`` in one vectorised call (noise drawn in that order),
+        not yet clipped: :meth:`_obs_lidar` applies the sensor's range convention."""
         ks = list(ks)
         poses = self._poses[ks]
         circles = np.array([geo.housing_circle(*self._poses[1 - k]) for k in ks])
         r = self._lidar.scan_many(poses, circles)
         if self.lidar_noise > 0:
             r += self.np_random.normal(0.0, self.lidar_noise, r.shape).astype(np.float32)
-        np.clip(r, geo.LIDAR_MIN, geo.LIDAR_MAX, out=r)
         return list(r)
+
+    def _obs_lidar(self, raw: np.ndarray) -> np.ndarray:
+        """The observed scan: readings outside the sensor's range clipped into it (default), or
+        shown as the invalid value (0 / inf), as are beams that drop out."""
+        if self._lidar_fill is None:
+            return np.clip(raw, geo.LIDAR_MIN, geo.LIDAR_MAX)
+        bad = (raw < geo.LIDAR_MIN) | (raw > geo.LIDAR_MAX)
+        if self.lidar_dropout > 0:
+            bad |= self.np_random.random(raw.shape) < self.lidar_dropout
+        return np.where(bad, np.float32(self._lidar_fill), raw).astype(np.float32)
+
+    def _observed_pose(self, k: int) -> np.ndarray:
+        """World pose of robot k as its localisation reports it: exact, or with an AMCL-like
+        offset that is drawn anew only once the robot has moved or turned enough."""
+        pose = self._poses[k]
+        if self.pose_noise == 0 and self.pose_noise_yaw == 0:
+            return pose
+        ref = self._pose_ref[k]
+        if ref is None or (math.hypot(pose[0] - ref[0], pose[1] - ref[1]) >= self.pose_update[0]
+                           or abs(math.remainder(pose[2] - ref[2], 2 * math.pi)) >= self.pose_update[1]):
+            sig = (self.pose_noise, self.pose_noise, self.pose_noise_yaw)
+            self._pose_err[k] = self.np_random.normal(0.0, 1.0, 3) * sig
+            self._pose_ref[k] = pose.copy()
+        noisy = pose + self._pose_err[k]
+        # the estimate stays inside the map, like AMCL's particles
+        h = geo.ARENA_HALF_DIAG
+        noisy[:2] = np.clip(noisy[:2], -h, h)
+        return noisy
 
     def _camera(self, k: int) -> np.ndarray:
         x, y, yaw = self._poses[k]
@@ -357,13 +465,25 @@ class BurgerWarEnv(gym.Env):
         return (self._reader.reads(red, blue, geo.BLUE_MARKERS),
                 self._reader.reads(blue, red, geo.RED_MARKERS))
 
+    def _serve_reads(self, red: list[int], blue: list[int]) -> list[dict]:
+        """One judge tick. The real judge serves requests one at a time, in whatever order they
+        arrive; when both robots read in the same tick, a fair coin (from ``np_random``, drawn
+        only then) says whether the agent's requests come first, so neither side is favoured
+        and a mirrored episode with the same seed mirrors this too."""
+        order = "rb"
+        if red and blue:
+            agent_first = bool(self.np_random.random() < 0.5)
+            order = "rb" if agent_first == (self.agent_side == 0) else "br"
+        return self.judge.read(red, blue, order)
+
     def _obs(self, k: int, lidar: np.ndarray, image: bool | None = None):
-        x, y, yaw = geo.to_frame(*self._poses[k], k)
+        """Robot k's observation from its raw (unclipped) scan ``lidar``."""
+        x, y, yaw = geo.to_frame(*self._observed_pose(k), k)
         jt = self.judge
         mine, theirs = (jt.scores[0], jt.scores[1]) if k == 0 else (jt.scores[1], jt.scores[0])
         mask = _MASK_LUT[k][jt.owners[_VIEW_INDEX[k]]]
         obs = {
-            "lidar": lidar,
+            "lidar": self._obs_lidar(lidar),
             "pose": np.array([x, y, math.cos(yaw), math.sin(yaw)], np.float32),
             "mask": mask,
             "game": np.array([jt.time / jt.match_time, float(jt.sudden_death),
@@ -407,6 +527,8 @@ class BurgerWarEnv(gym.Env):
                     p.resetJointState(body, j, start[j] + jit[j], 0.0, physicsClientId=self._client)
         self._read_poses()
         self._cmd = [(0.0, 0.0), (0.0, 0.0)]
+        self._vel = [(0.0, 0.0), (0.0, 0.0)]
+        self._pose_ref = [None, None]
         self._n = 0
         self._steps = 0
         self._opp_lidar_at = -1
@@ -437,6 +559,8 @@ class BurgerWarEnv(gym.Env):
             else:
                 lidar = self._scan(k)
         obs = self._obs(k, lidar) if opp.needs_obs else None
+        if lidar is not None:
+            lidar = np.clip(lidar, geo.LIDAR_MIN, geo.LIDAR_MAX)
         out = opp.act(OpponentView(x, y, yaw, self.judge.time, lidar, obs))
         if opp.needs_obs:
             return self._to_cmd(out)
@@ -463,10 +587,10 @@ class BurgerWarEnv(gym.Env):
                     stale = False
                 self._cmd[o] = self._opponent_cmd()
             for k in (0, 1):
-                v, w = self._cmd[k]
-                if w != 0.0 or sent[k] != self._cmd[k]:
+                v, w = self._cmd[k] if self.accel_limit is None else self._ramp(k, dt)
+                if w != 0.0 or sent[k] != (v, w):
                     self._apply_cmd(k, v, w, yaw[k])
-                    sent[k] = self._cmd[k]
+                    sent[k] = (v, w)
                 yaw[k] += w * dt
             p.stepSimulation(physicsClientId=cid)
             self._n += 1
@@ -476,7 +600,7 @@ class BurgerWarEnv(gym.Env):
                 yaw = [self._poses[0, 2], self._poses[1, 2]]
                 stale = False
                 jt.time = self._n * dt
-                captures += jt.read(*self._reads_both())
+                captures += self._serve_reads(*self._reads_both())
             jt.set_time(self._n * dt)
             if jt.done:
                 break
@@ -497,6 +621,16 @@ class BurgerWarEnv(gym.Env):
         obs = self._obs(a, self._agent_lidar)
         return obs, reward, terminated, truncated, self._info(captures, comps)
 
+    def _ramp(self, k: int, dt: float) -> tuple[float, float]:
+        """Robot k's speeds for the next physics step: towards the command, changing by at most
+        ``accel_limit * dt``."""
+        (v0, w0), (v1, w1) = self._vel[k], self._cmd[k]
+        av, aw = self.accel_limit
+        v = v0 + _clip(v1 - v0, av * dt)
+        w = w0 + _clip(w1 - w0, aw * dt)
+        self._vel[k] = (v, w)
+        return v, w
+
     def _reward(self, before: np.ndarray, scores_before, terminated: bool) -> dict[str, float]:
         a = self.agent_side
         jt = self.judge
@@ -505,7 +639,7 @@ class BurgerWarEnv(gym.Env):
             if np.array_equal(before, jt.owners):
                 gain = loss = 0.0
             else:
-                gain, loss = self._users_marker_reward(before, jt.owners, me, a)
+                gain, loss = self._users_marker_reward(before, jt.owners, me, a, self._marker_weights)
             x, y, _ = self._poses[a]
             wall = (geo.ARENA_HALF_DIAG - abs(x) - abs(y)) / math.sqrt(2)
             return {"marker_gain": gain, "robot_loss": loss,
@@ -522,14 +656,16 @@ class BurgerWarEnv(gym.Env):
         return {"outcome": outcome}
 
     @staticmethod
-    def _users_marker_reward(before: np.ndarray, owners: np.ndarray, me: int, a: int) -> tuple[float, float]:
-        """The users' marker terms: marker value +1 mine, 0 neutral, -1 enemy's; gain = sum of the
-        positive changes over field + enemy robot markers (a retake is +2), loss = sum of the
-        negative changes over my robot's markers."""
+    def _users_marker_reward(before: np.ndarray, owners: np.ndarray, me: int, a: int,
+                             weights: np.ndarray) -> tuple[float, float]:
+        """The users' marker terms: marker value +w mine, 0 neutral, -w enemy's (w = 1, or the
+        marker's points with ``marker_values="points"``); gain = sum of the positive changes
+        over field + enemy robot markers (a retake is +2w), loss = sum of the negative changes
+        over my robot's markers."""
         def value(o):
             return np.where(o == me, 1.0, np.where(o == NEUTRAL, 0.0, -1.0))
 
-        d = value(owners) - value(before)
+        d = (value(owners) - value(before)) * weights
         own = geo.RED_MARKERS if a == 0 else geo.BLUE_MARKERS
         sel = np.ones(geo.N_TARGETS, bool)
         sel[own] = False

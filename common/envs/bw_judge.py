@@ -1,18 +1,22 @@
 """The Burger War judge as pure logic (no simulation).
 
-Rules (contest judge server + rule book):
+Rules, as the contest's judge server (``judge/judgeServer.py`` of the contest kit) applies them;
+``shared/notes/burger-war.md`` ("Judge") summarises them:
 
 * a field marker belongs to whoever read it last and can be retaken any number of times;
 * a robot marker (left/right 3 points, back 5 points) read by the enemy stays the enemy's; a
   robot cannot read its own markers;
 * scores are recounted as the sum of the points of the markers each player owns;
-* called game: as soon as ``|score_r - score_b| >= call_diff`` (10) the state becomes "stop";
-* the match lasts ``match_time`` (180 s); if tied then, sudden death lasts up to
-  ``sudden_death_time`` (60 s) more and ends at the first score change; still tied at the end =
-  draw (state "end", winner "draw").
-
-If both players read the same field marker in the same judge tick the reads cancel (the
-ownership does not change): this keeps the rules point-symmetric.
+* the server handles one read request at a time: two reads of one marker in the same tick are
+  two requests, and the later one wins (it retakes the marker from the earlier reader);
+* called game: as soon as ``|score_r - score_b| >= call_diff`` (10) after a request, the match
+  is over and later requests are refused;
+* the match lasts ``match_time`` (180 s); after that it ends as soon as the scores differ
+  (sudden death), at the latest at ``match_time + sudden_death_time`` (240 s): still tied then
+  = draw. A simultaneous score in sudden death therefore cannot end it as a draw: the first
+  request served makes the scores differ and ends the match, the later one is refused.
+* every finished match reports ``state: "stop"``; "end" is the judge server's state *before* a
+  match starts and is never reported here (the simulated match starts at ``reset``).
 """
 
 from __future__ import annotations
@@ -27,14 +31,18 @@ NEUTRAL, RED, BLUE = 0, 1, 2
 _PLAYER_CHAR = {NEUTRAL: "n", RED: "r", BLUE: "b"}
 _CHARS = ("n", "r", "b")
 _POINTS = [int(p) for p in TARGET_POINTS]
+#: the judge server's states: before the match, during it, after it
+PRE_MATCH, RUNNING, STOP = "end", "running", "stop"
+#: orders in which :meth:`Judge.read` serves the two players' requests of one tick
+ORDERS = ("rb", "br")
 
 
 class Judge:
     """Ownership, scores and match state.
 
     Attributes: ``owners`` int8[18] (0 neutral, 1 red, 2 blue) in ``TARGET_NAMES`` order,
-    ``scores`` (red, blue), ``state`` "running" | "stop" | "end", ``time`` seconds,
-    ``sudden_death`` bool.
+    ``scores`` (red, blue), ``state`` "running" | "stop", ``time`` seconds,
+    ``sudden_death`` bool (past ``match_time`` with the scores tied).
     """
 
     def __init__(self, match_time: float = 180.0, sudden_death_time: float = 60.0,
@@ -48,26 +56,34 @@ class Judge:
     def reset(self) -> None:
         self.owners = np.zeros(len(TARGET_NAMES), dtype=np.int8)
         self.scores = (0, 0)
-        self.state = "running"
+        self.state = RUNNING
         self.time = 0.0
         self.sudden_death = False
-        self._sd_scores: tuple[int, int] | None = None
 
     # ------------------------------------------------------------------ reads
-    def read(self, red_reads: Iterable[int] = (), blue_reads: Iterable[int] = ()) -> list[dict]:
-        """Apply one tick of reads (target indices) by red and blue; returns capture events.
+    def read(self, red_reads: Iterable[int] = (), blue_reads: Iterable[int] = (),
+             order: str = "rb") -> list[dict]:
+        """Serve one tick of read requests (target indices) by red and blue; returns the
+        capture events in the order they happened.
+
+        ``order`` says whose requests the server handles first this tick: "rb" (red's, then
+        blue's) or "br". It matters only when both read the same field marker (the later
+        request wins) or when a request ends the match (the requests after it are refused).
 
         Each event: ``{"name", "player": "r"|"b", "previous": "n"|"r"|"b", "point", "time"}``.
-        Reads after the match is over, of a robot's own markers, of already-owned markers, and of
-        robot markers already taken are ignored.
+        Requests after the match is over, of a robot's own markers, of markers the reader
+        already owns, and of robot markers already taken change nothing and make no event.
         """
-        if self.state != "running":
+        if order not in ORDERS:
+            raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+        if self.state != RUNNING:
             return []
-        r, b = set(int(i) for i in red_reads), set(int(i) for i in blue_reads)
-        both = {i for i in r & b if i < N_FIELD}
+        reads = {RED: red_reads, BLUE: blue_reads}
         events = []
-        for player, reads in ((RED, r), (BLUE, b)):
-            for i in sorted(reads - both):
+        for player in ((RED, BLUE) if order == "rb" else (BLUE, RED)):
+            for i in dict.fromkeys(int(i) for i in reads[player]):  # unique, in request order
+                if self.state != RUNNING:
+                    return events
                 if not self._can_take(player, i):
                     continue
                 prev = int(self.owners[i])
@@ -75,8 +91,7 @@ class Judge:
                 events.append({"name": TARGET_NAMES[i], "player": _PLAYER_CHAR[player],
                                "previous": _PLAYER_CHAR[prev], "point": int(TARGET_POINTS[i]),
                                "time": self.time})
-        if events:
-            self._recount()
+                self._recount()
         return events
 
     def _can_take(self, player: int, i: int) -> bool:
@@ -94,39 +109,36 @@ class Judge:
         self._check_scores()
 
     def _check_scores(self) -> None:
-        if self.state != "running":
+        if self.state != RUNNING:
             return
         sr, sb = self.scores
-        if abs(sr - sb) >= self.call_diff:
-            self.state = "stop"
-        elif self.sudden_death and self.scores != self._sd_scores:
-            self.state = "end"
+        if abs(sr - sb) >= self.call_diff or (self.sudden_death and sr != sb):
+            self.state = STOP
 
     # ------------------------------------------------------------------ clock
     def set_time(self, t: float) -> None:
         """Advance the clock to ``t`` seconds and apply the time rules."""
         self.time = float(t)
-        if self.state != "running":
+        if self.state != RUNNING:
             return
         eps = 1e-9
-        if not self.sudden_death and self.time >= self.match_time - eps:
+        if self.time >= self.match_time - eps:
             if self.scores[0] != self.scores[1]:
-                self.state = "end"
-            else:
-                self.sudden_death = True
-                self._sd_scores = self.scores
-        if self.sudden_death and self.time >= self.match_time + self.sudden_death_time - eps:
-            self.state = "end"
+                self.state = STOP
+                return
+            self.sudden_death = True
+        if self.time >= self.match_time + self.sudden_death_time - eps:
+            self.state = STOP
 
     # ------------------------------------------------------------------ outputs
     @property
     def done(self) -> bool:
-        return self.state != "running"
+        return self.state != RUNNING
 
     @property
     def winner(self) -> str | None:
         """"r", "b", "draw", or None while running."""
-        if self.state == "running":
+        if self.state == RUNNING:
             return None
         sr, sb = self.scores
         return "r" if sr > sb else "b" if sb > sr else "draw"

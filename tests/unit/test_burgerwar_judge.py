@@ -1,4 +1,11 @@
-"""The Burger War judge as pure logic."""
+"""The Burger War judge as pure logic.
+
+Each rule's source: the contest kit's judge server (``judge/judgeServer.py``: ``WarState``,
+``Referee.judgeTargetId``, ``isOverMatchTime``, ``isCalledGame``) and the "Judge" section of
+``shared/notes/burger-war.md``.
+"""
+
+import pytest
 
 from zenrl.common.envs.bw_geometry import TARGET_NAMES
 from zenrl.common.envs.bw_judge import BLUE, NEUTRAL, RED, Judge
@@ -35,10 +42,30 @@ def test_field_marker_retake_and_recount():
     assert j.scores == (1, 0) and j.owners[IDX["Tomato_N"]] == RED
 
 
-def test_simultaneous_field_reads_cancel():
+def test_two_reads_of_one_marker_in_a_tick_the_later_request_wins():
+    """Source: the contest kit's judge server (judge/judgeServer.py) serves one request at a
+    time and sets the target's owner to the requester; notes "Judge": a field marker belongs
+    to whoever read it last."""
+    for order, later in (("rb", BLUE), ("br", RED)):
+        j = Judge()
+        ev = j.read([IDX["Pudding_S"]], [IDX["Pudding_S"]], order=order)
+        assert j.owners[IDX["Pudding_S"]] == later
+        assert j.scores == ((1, 0) if later == RED else (0, 1))
+        # both requests are served: the earlier capture, then the later retake
+        assert [(e["player"], e["previous"]) for e in ev] == (
+            [("r", "n"), ("b", "r")] if order == "rb" else [("b", "n"), ("r", "b")])
+    # a marker the later reader already owns: the earlier request takes it, the later retakes it
     j = Judge()
-    assert j.read([IDX["Pudding_S"]], [IDX["Pudding_S"]]) == []
-    assert j.owners[IDX["Pudding_S"]] == NEUTRAL
+    j.read(red_reads=[IDX["Tomato_S"]])
+    ev = j.read([IDX["Tomato_S"]], [IDX["Tomato_S"]], order="br")
+    assert j.owners[IDX["Tomato_S"]] == RED and [e["player"] for e in ev] == ["b", "r"]
+    ev = j.read([IDX["Tomato_S"]], [IDX["Tomato_S"]], order="rb")
+    assert j.owners[IDX["Tomato_S"]] == BLUE and [e["player"] for e in ev] == ["b"]
+
+
+def test_read_order_is_validated():
+    with pytest.raises(ValueError, match="order must be one of"):
+        Judge().read([0], [1], order="red")
 
 
 def test_robot_markers_stay_taken_and_own_markers_unreadable():
@@ -68,17 +95,33 @@ def test_called_game_at_diff_10():
     assert j.state == "stop"
 
 
+def test_called_game_refuses_the_later_request_of_the_same_tick():
+    """Source: judgeServer.py judgeTargetId stops the match right after the request that makes
+    |diff| >= 10 (isCalledGame) and refuses requests once the state is not "running"."""
+    j = Judge()
+    j.read(red_reads=[IDX["BL_B"], IDX["BL_L"], IDX["Tomato_N"]])  # 9 - 0
+    ev = j.read([IDX["Tomato_S"]], [IDX["Tomato_S"], IDX["RE_B"]], order="rb")
+    assert j.state == "stop" and j.scores == (10, 0) and [e["player"] for e in ev] == ["r"]
+    # served the other way round, blue's requests come first and the match goes on
+    j = Judge()
+    j.read(red_reads=[IDX["BL_B"], IDX["BL_L"], IDX["Tomato_N"]])
+    j.read([IDX["Tomato_S"]], [IDX["Tomato_S"], IDX["RE_B"]], order="br")
+    assert j.state == "running" and j.scores == (10, 5)
+
+
 def test_match_ends_at_180_when_not_tied():
     j = Judge()
     j.read(blue_reads=[IDX["Omelette_S"]])
     j.set_time(179.9)
     assert j.state == "running" and j.winner is None
     j.set_time(180.0)
-    assert j.state == "end" and j.winner == "b"
-    assert j.war_state()["state"] == "end"
+    assert j.state == "stop" and j.winner == "b"
+    assert j.war_state()["state"] == "stop"
 
 
-def test_sudden_death_ends_at_first_score_change():
+def test_sudden_death_ends_when_the_scores_differ():
+    """Source: judgeServer.py isOverMatchTime: past match_time the match stops only when the
+    scores differ; notes "Judge": sudden death up to 60 s more."""
     j = Judge()
     j.read([IDX["Tomato_N"]], [IDX["Tomato_S"]])
     j.set_time(180.0)
@@ -86,17 +129,68 @@ def test_sudden_death_ends_at_first_score_change():
     j.set_time(200.0)
     assert j.state == "running"
     j.read(blue_reads=[IDX["Tomato_N"]])  # blue retakes: 0 - 2
-    assert j.state == "end" and j.winner == "b"
+    assert j.state == "stop" and j.winner == "b" and j.time == 200.0
+    assert j.war_state()["state"] == "stop"
+
+
+def test_simultaneous_score_in_sudden_death_is_not_a_draw():
+    """Source: judgeServer.py serves requests one at a time and stops (isOverMatchTime) before
+    the next one as soon as the scores differ: the first request served wins; the match never
+    ends tied before 240 s."""
+    for order, winner in (("rb", "r"), ("br", "b")):
+        j = Judge()
+        j.set_time(181.0)
+        ev = j.read([IDX["Omelette_N"]], [IDX["Pudding_S"]], order=order)
+        assert j.state == "stop" and j.winner == winner and len(ev) == 1
+        assert j.owners[IDX["Omelette_N" if winner == "r" else "Pudding_S"]] != NEUTRAL
+
+
+def test_sudden_death_goes_on_while_tied():
+    """Source: judgeServer.py isOverMatchTime compares the two scores: requests that change
+    nothing (markers the reader already owns) leave them tied and the match goes on."""
+    j = Judge()
+    j.read([IDX["Tomato_N"]], [IDX["Tomato_S"]])  # 1 - 1
+    j.set_time(185.0)
+    assert j.read([IDX["Tomato_N"]], [IDX["Tomato_S"]], order="br") == []
+    assert j.scores == (1, 1) and j.state == "running"
+    j.set_time(239.9)
+    assert j.state == "running" and j.sudden_death
 
 
 def test_draw_at_240():
+    """Source: judgeServer.py isOverMatchTime: past match_time + extend_time (60 s) the match
+    stops whatever the scores."""
     j = Judge()
     j.set_time(180.0)
     assert j.sudden_death and j.state == "running"
     j.set_time(239.9)
     assert j.state == "running"
     j.set_time(240.0)
-    assert j.state == "end" and j.winner == "draw"
+    assert j.state == "stop" and j.winner == "draw"
+
+
+def test_finished_match_reports_stop_never_end():
+    """Source: judgeServer.py: WarState starts in "end" (before the match), setStateStop sets
+    "stop" for every finish (time, called game); the contest's clients wait for "stop"."""
+    from zenrl.common.envs.bw_judge import PRE_MATCH, STOP
+
+    assert (PRE_MATCH, STOP) == ("end", "stop")
+    seen = set()
+    for setup in ("called", "time", "sudden_death", "draw"):
+        j = Judge()
+        seen.add(j.state)
+        if setup == "called":
+            j.read(red_reads=[IDX["BL_B"], IDX["BL_L"], IDX["BL_R"]])
+        elif setup == "time":
+            j.read(red_reads=[IDX["Tomato_N"]])
+            j.set_time(180.0)
+        elif setup == "sudden_death":
+            j.set_time(200.0)
+            j.read(blue_reads=[IDX["Tomato_N"]])
+        else:
+            j.set_time(240.0)
+        assert j.done and j.war_state()["state"] == "stop", setup
+    assert seen == {"running"}
 
 
 def test_reset_clears_everything():
@@ -123,3 +217,25 @@ def test_match_outcome_counts_like_the_contest():
     assert match_outcome(_info("red", 2, 2, "draw")) == ("draw", 2, 2)
     assert match_outcome(_info("red", 0, 0)) == ("draw", 0, 0)
     assert match_outcome({"TimeLimit.truncated": True}) is None
+
+
+def test_env_sudden_death_ends_with_stop_when_the_agent_scores():
+    """The real env: tied at match_time -> sudden death (game[1] = 1) goes on; the agent's read
+    makes the scores differ -> terminated, state "stop", with sudden-death time left."""
+    import math
+
+    from zenrl.common.envs.burgerwar import BurgerWarEnv
+
+    env = BurgerWarEnv(opponents="idle", lidar_noise=0.0, match_time=0.5, sudden_death_time=5.0)
+    try:
+        env.reset(seed=0)
+        for _ in range(10):
+            obs, _, term, _, info = env.step(2)
+            assert not term and info["war_state"]["state"] == "running"
+        assert obs["game"][1] == 1.0  # sudden death, tied 0 - 0
+        env.set_poses((0.0, -0.75, math.pi / 2), (0.0, 1.3, -math.pi / 2))  # facing FriedShrimp_S
+        _, _, term, _, info = env.step(2)
+        assert term and info["war_state"]["state"] == "stop" and info["winner"] == "r"
+        assert info["war_state"]["time"] < 5.5
+    finally:
+        env.close()
