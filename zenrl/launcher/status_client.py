@@ -15,6 +15,8 @@ from zenrl.common import protocol as P
 #: (stats field holding a running total, unit) per role: the rate is its change per second
 TOTALS = {"actor": ("env_steps", "env steps/s"), "learner": ("updates", "updates/s"),
           "replay": ("inserted_total", "inserts/s")}
+#: the rate a process reports itself, used when it was heard only once
+OWN_RATE = {"learner": "updates_per_s", "replay": "inserts_per_s"}
 
 
 def _rate(samples: list[tuple[float, float]]) -> float | None:
@@ -92,6 +94,8 @@ def collect(node: Any, run_id: str, wait_s: float) -> list[dict[str, Any]]:
                 field, unit = TOTALS[role]
                 pts = [(t, float(v[field])) for t, v in seen if isinstance(v.get(field), (int, float))]
                 row["rate"], row["rate_unit"] = _rate(pts), unit
+                if row["rate"] is None and isinstance(row.get(OWN_RATE.get(role, "")), (int, float)):
+                    row["rate"] = float(row[OWN_RATE[role]])
             elif role == "evaluator":
                 row["rate"] = _rate([(t, float(i)) for i, (t, _) in enumerate(evals)])
                 row["rate_unit"] = "evals/s"

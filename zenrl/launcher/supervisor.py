@@ -109,15 +109,22 @@ class Launcher:
         self.resume = resume
         self.run_dir = Path(cfg.runs_dir) / self.run_id
         self.stop = threading.Event()
-        self.earlier = earlier_segments(read_summary(self.run_dir)) if resume else []
+        before = read_summary(self.run_dir) if resume else None
+        self.earlier = earlier_segments(before)
         self.progress = Progress(base_env_steps=sum(int(s.get("env_steps") or 0) for s in self.earlier),
                                  base_elapsed_s=sum(float(s.get("wall_s") or 0.0) for s in self.earlier))
+        if before and isinstance(before.get("learner"), dict):
+            # the learner's counters continue from its checkpoint: show the last ones heard until
+            # it reports again (the replay's size is not carried: it restarts empty unless durable)
+            self.progress.learner = dict(before["learner"])
         self.started_at = time.time()
         self.children: list[Child] = []
         self.max_restarts = 5
         self.stop_reason = ""
         self.exit_code = 0
-        self.updates_at_start: int | None = None
+        # updates when this launch began: the learner resumes from its checkpoint, which may be
+        # older than the last count an earlier segment heard
+        self.updates_at_start: int | None = None if resume else 0
         self.placement = plan(self.cfg.cpu_placement, self.cfg.algo, self.cfg.learner.torch_threads, usable_cpus())
         self.endpoint = ""
         self._metrics = None
