@@ -181,6 +181,11 @@ def cmd_status(args: argparse.Namespace) -> int:
         if not run_dir.is_dir():
             raise ConfigError(f"no run folder {args.run_dir!r} (give runs/<run-id>)")
         info = read_launcher_info(run_dir)
+        if info is not None and not _alive(info.get("pid")) and not args.router:
+            # a launcher that was killed leaves its launcher.json behind
+            sys.stderr.write(f"zenrl status: run {run_dir.name} is not running: its launcher (pid {info.get('pid')}) "
+                             f"is gone; zenrl run --resume {run_dir} continues it\n")
+            return 1
         if info is None and not args.router:
             ended = read_summary(run_dir)
             if ended is not None:
@@ -198,6 +203,19 @@ def cmd_status(args: argparse.Namespace) -> int:
         raise ConfigError("which run? zenrl status runs/<run-id> (a run of zenrl run), or --run-id ID --router EP")
     return status(cfg.transport.router or "", cfg.run_id, min(cfg.transport.connect_timeout_s, 5.0),
                   cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait)
+
+
+def _alive(pid: object) -> bool:
+    """Whether process ``pid`` exists on this machine (a run folder's launcher)."""
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
 
 
 def cmd_config(args: argparse.Namespace) -> int:

@@ -64,6 +64,8 @@ def test_last_error_line_of_a_log(tmp_path):
     assert last_error_line(log) == "ValueError: zenrl needs a Discrete action space"
     log.write_text("a INFO x: fine\nb ERROR learner zenrl.learner: checkpoint unreadable\nc INFO x: stopping\n")
     assert last_error_line(log) == "b ERROR learner zenrl.learner: checkpoint unreadable"
+    log.write_text("a ERROR learner zenrl: no checkpoint in 'x'\nzenrl: error: no checkpoint in 'x'\n")
+    assert last_error_line(log) == "no checkpoint in 'x'"
     log.write_text("only info\n")
     assert last_error_line(log) == "only info"
     assert last_error_line(tmp_path / "missing.log") is None

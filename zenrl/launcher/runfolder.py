@@ -79,4 +79,5 @@ def last_error_line(log_path: Path | None, tail_bytes: int = 65536) -> str | Non
     if not lines:
         return None
     line = next((x for x in reversed(lines) if _ERROR_LINE.search(x)), lines[-1])
+    line = line.removeprefix("zenrl: error: ")
     return line if len(line) <= 400 else line[:397] + "..."

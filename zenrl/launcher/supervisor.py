@@ -35,6 +35,10 @@ PARENT_ENV = "ZENRL_PARENT_PID"
 EXIT_CONFIG = 78
 #: how often progress is logged (no terminal) and written to metrics.jsonl
 PROGRESS_EVERY_S = 5.0
+#: how often summary.json is rewritten while the run goes on (so that a killed launcher leaves one)
+SUMMARY_EVERY_S = 30.0
+#: the stop reason a summary written while the run goes on carries
+RUNNING = "still running (or its launcher was killed)"
 
 
 def new_run_id(cfg: RunConfig) -> str:
@@ -111,6 +115,7 @@ class Launcher:
         self.stop = threading.Event()
         before = read_summary(self.run_dir) if resume else None
         self.earlier = earlier_segments(before)
+        self.earlier_evals = [e for e in (before or {}).get("evals", []) if isinstance(e, dict)]
         self.progress = Progress(base_env_steps=sum(int(s.get("env_steps") or 0) for s in self.earlier),
                                  base_elapsed_s=sum(float(s.get("wall_s") or 0.0) for s in self.earlier))
         if before and isinstance(before.get("learner"), dict):
@@ -288,7 +293,7 @@ class Launcher:
 
                 live = Live(self._table(), console=console, refresh_per_second=2, transient=False)
                 live.start()
-        last_progress = time.monotonic()
+        last_progress = last_summary = time.monotonic()
         try:
             while not self.stop.wait(0.5):
                 p = self.progress
@@ -307,6 +312,9 @@ class Launcher:
                     if p.segment_env_steps:
                         self._metrics.write("launcher", p.env_steps, {"env_steps": p.env_steps,
                                                                       "env_steps_per_s": p.env_steps_rate})
+                if time.monotonic() - last_summary >= SUMMARY_EVERY_S:
+                    last_summary = time.monotonic()
+                    self._write_summary()
         finally:
             if live is not None:
                 live.update(self._table())
@@ -320,18 +328,18 @@ class Launcher:
         resumed run (``segments``, oldest first)."""
         p = self.progress
         now = time.monotonic()
+        reason = self.stop_reason or RUNNING
         updates = p.learner.get("updates")
         segment = {"started_at": self.started_at, "ended_at": time.time(), "wall_s": now - p.start,
                    "env_steps": p.segment_env_steps, "updates_at_start": self.updates_at_start,
-                   "updates_at_end": updates, "stop_reason": self.stop_reason, "resumed": self.resume,
+                   "updates_at_end": updates, "stop_reason": reason, "resumed": self.resume,
                    "startup_s": None if p.first_step_t is None else p.first_step_t - p.start,
                    "restarts": {c.name: c.restarts for c in self.children}}
-        earlier_evals = (read_summary(self.run_dir) or {}).get("evals", []) if self.earlier else []
-        evals = [e for e in earlier_evals if isinstance(e, dict)] + [dict(e, segment=len(self.earlier)) for e in p.evals]
+        evals = self.earlier_evals + [dict(e, segment=len(self.earlier)) for e in p.evals]
         solved = None
         if self.cfg.target_return is not None:
             solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
-        return {"run_id": self.run_id, "stop_reason": self.stop_reason, "wall_s": p.elapsed_s(now),
+        return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
                 "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
                 "replay": p.replay, "evals": evals, "target_return": self.cfg.target_return,
                 "solved": solved is not None,
