@@ -15,7 +15,8 @@ import torch
 
 from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.errors import ZenrlError
-from zenrl.tools.loading import MATCH_OPPONENTS, is_match_env, load_policy_env, resolve_checkpoint
+from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_policy_env, quiet_native_imports,
+                                 resolve_checkpoint)
 from zenrl.tools.stats import mean_ci, wilson
 
 @dataclass(frozen=True)
@@ -76,6 +77,7 @@ _RUNNER: EpisodeRunner | None = None  # one per worker process (set by the pool 
 def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
                  opponents: Sequence[str] | None, sample: bool = False) -> None:
     global _RUNNER
+    quiet_native_imports()  # the worker shares the parent's stdout, whose last line is the JSON
     _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents, sample)
 
 
