@@ -14,15 +14,13 @@ import sys
 import threading
 from typing import Callable
 
+from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig, describe_options, load_config
 from zenrl.common.errors import CheckpointError, ConfigError, ZenrlError
 from zenrl.placement import apply_from_env
 
 log = logging.getLogger("zenrl")
 
-#: exit status of a role process stopped by its configuration (sysexits' EX_CONFIG); ``zenrl run``
-#: does not restart such a child (zenrl.launcher.supervisor.EXIT_CONFIG is the same value)
-EXIT_CONFIG = 78
 #: Zenoh error texts end with the Rust source line that raised them: noise to a user
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
@@ -178,6 +176,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     run_dir = None
     if args.run_dir:
         run_dir = Path(args.run_dir)
+        if not run_dir.is_dir() and (Path("runs") / args.run_dir).is_dir():
+            run_dir = Path("runs") / args.run_dir  # a run id typed instead of its folder
         if not run_dir.is_dir():
             raise ConfigError(f"no run folder {args.run_dir!r} (give runs/<run-id>)")
         info = read_launcher_info(run_dir)

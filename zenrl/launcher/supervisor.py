@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError
 from zenrl.launcher.display import Progress, render_table
@@ -30,9 +31,6 @@ from zenrl.placement import describe, plan, usable_cpus
 log = logging.getLogger("zenrl.launcher")
 
 PARENT_ENV = "ZENRL_PARENT_PID"
-#: exit status of a role process that stopped on its configuration (sysexits' EX_CONFIG): the
-#: launcher does not restart it, since it would fail the same way
-EXIT_CONFIG = 78
 #: how often progress is logged (no terminal) and written to metrics.jsonl
 PROGRESS_EVERY_S = 5.0
 #: how often summary.json is rewritten while the run goes on (so that a killed launcher leaves one)
