@@ -1,4 +1,4 @@
-"""The launcher's env-steps/s figure (zenrl/launcher.py, Progress.tick_rate): actors report about
+"""The launcher's env-steps/s figure (zenrl/launcher/display.py, Progress.tick_rate): actors report about
 once a second, the display ticks twice a second; the rate must be steady, not 0 / double."""
 
 import pytest
