@@ -75,7 +75,9 @@ def check_env(cfg: RunConfig) -> None:
     :class:`ConfigError` line instead of every child failing in its log."""
     from zenrl.common.env_factory import make_env
     from zenrl.common.networks import num_actions, obs_spec
+    from zenrl.tools.loading import quiet_native_imports
 
+    quiet_native_imports()  # pybullet's build-time banner is noise in the launcher's terminal
     where = f"env.id={cfg.env.id!r}"
     try:
         env = make_env(cfg.env)
