@@ -109,9 +109,9 @@ class LearnerConfig(_Section):
     publish_every_updates: int = Field(25, ge=1, description="Broadcast weights every this many updates.")
     requests_in_flight: int = Field(4, ge=1, description="Sample requests kept in flight by the prefetcher.")
     batches_per_request: int = Field(1, ge=1, le=64, description=(
-        "Ape-X: each sample request asks for this many batches at once, split on arrival; the learner "
-        "then pays a request (~0.2 ms of its thread) once per this many updates, and a batch's "
-        "priorities are up to batches_per_request * requests_in_flight batches old."))
+        "Ape-X: each sample request asks for this many batches at once, split on arrival, so that the "
+        "learner pays one request round trip per this many updates; a batch's priorities are then up to "
+        "batches_per_request * requests_in_flight batches old."))
     send_linger_s: float = Field(0.01, ge=0, le=1.0, description=(
         "Ape-X: the priority/weights sender waits this long after the first queued item and sends all "
         "that gathered (priorities merged into one message), waking once per few updates; 0 sends at once."))
@@ -172,7 +172,7 @@ class RunConfig(_Section):
     max_wall_s: Optional[float] = Field(None, gt=0, description="Stop the run after this many seconds.")
     target_return: Optional[float] = Field(None, description="Stop the run once the greedy eval mean return reaches this.")
     progress: bool = Field(True, description="Show live progress in the terminal (zenrl run).")
-    cpu_placement: Literal["auto", "off"] = Field("off", description="zenrl run, Ape-X, on a machine with 2-4 usable CPUs: auto reserves the last learner.torch_threads CPUs for the learner and runs the other processes on the rest, actors at nice +5 (learner ~97 -> ~200 updates/s on 2 cores with CartPole); off leaves scheduling to the OS. Suits cheap envs whose actors make far more data than the learner uses; it halved the env steps of the Burger War match, hence off by default. Larger machines are left alone.")
+    cpu_placement: Literal["auto", "off"] = Field("off", description="zenrl run, Ape-X, on a machine with 2-4 usable CPUs: auto reserves the last learner.torch_threads CPUs for the learner and runs the other processes on the rest, actors at nice +5, so that cheap actors do not starve the learner; off (the default) leaves scheduling to the OS, which suits envs whose actors need those CPUs, such as the Burger War match. Larger machines are left alone.")
     env: EnvConfig = Field(default_factory=EnvConfig)
     network: NetworkConfig = Field(default_factory=NetworkConfig)
     transport: TransportConfig = Field(default_factory=TransportConfig)
@@ -216,12 +216,27 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+def _did_you_mean(loc: tuple[Any, ...]) -> str:
+    """``; did you mean 'batch_size'?`` for an unknown option close to a known one's name."""
+    import difflib
+
+    model: Any = RunConfig
+    for part in loc[:-1]:
+        field = getattr(model, "model_fields", {}).get(part)
+        model = getattr(field, "annotation", None) if field is not None else None
+        if not isinstance(model, type) or not issubclass(model, BaseModel):
+            return ""
+    close = difflib.get_close_matches(str(loc[-1]), list(model.model_fields), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
 def _format_errors(e: ValidationError, source: str) -> str:
     lines = []
     for err in e.errors():
         loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
         val = err.get("input")
-        lines.append(f"  {loc}: {err['msg']} (got {val!r})")
+        hint = _did_you_mean(tuple(err["loc"])) if err["type"] == "extra_forbidden" and err["loc"] else ""
+        lines.append(f"  {loc}: {err['msg']}{hint} (got {val!r})")
     return f"invalid configuration ({source}):\n" + "\n".join(lines)
 
 

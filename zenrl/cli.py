@@ -9,20 +9,34 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
 import threading
 from typing import Callable
 
+from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig, describe_options, load_config
-from zenrl.common.errors import ZenrlError
+from zenrl.common.errors import CheckpointError, ConfigError, ZenrlError
 from zenrl.placement import apply_from_env
 
 log = logging.getLogger("zenrl")
+
+#: Zenoh error texts end with the Rust source line that raised them: noise to a user
+_RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
 
 def setup_logging(level: str = "INFO", role: str = "") -> None:
     fmt = f"%(asctime)s %(levelname)s {role + ' ' if role else ''}%(name)s: %(message)s"
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, stream=sys.stderr)
+
+
+def quiet_zenoh(level: str) -> None:
+    """Zenoh's own log at ERROR only (a link closed by the BLOCK fuse still shows), unless zenrl
+    logs at DEBUG: its WARN lines (a router not reachable yet, a link closing at shutdown) carry
+    Rust source paths and nothing a user acts on. ``RUST_LOG`` overrides."""
+    from zenrl.common.transport import init_zenoh_logging
+
+    init_zenoh_logging("warn" if level.upper() == "DEBUG" else "error")
 
 
 def _options_epilog() -> str:
@@ -62,12 +76,17 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
     placed = apply_from_env()  # before any thread starts, so that every thread inherits it
     if placed is not None:
         log.info("cpu placement: CPUs %s, nice +%d", placed.cpus, placed.nice)
-    cfg = resolve(args)
-    run_id = cfg.run_id or "default"
-    stop = threading.Event()
-    install_stop_signals(stop)
-    _watch_parent(stop)
-    fn(cfg, run_id, stop)
+    try:
+        cfg = resolve(args)
+        run_id = cfg.run_id or "default"
+        stop = threading.Event()
+        install_stop_signals(stop)
+        _watch_parent(stop)
+        fn(cfg, run_id, stop)
+    except (ConfigError, CheckpointError) as e:
+        log.error("%s", e)
+        sys.stderr.write(f"zenrl: error: {e}\n")
+        return EXIT_CONFIG
     return 0
 
 
@@ -129,23 +148,74 @@ def cmd_run(args: argparse.Namespace) -> int:
     from zenrl.launcher import launch
 
     setup_logging(args.log_level, "run")
+    quiet_zenoh(args.log_level)
     extra = []
     if args.actors is not None:
         extra.append(f"actor.num_actors={args.actors}")
     if args.no_progress:
         extra.append("progress=false")
-    if args.resume and not args.config:
-        args.config = os.path.join(args.resume, "config.yaml")
+    if args.resume:
+        if not os.path.isdir(args.resume):
+            raise ConfigError(f"--resume {args.resume!r}: no such run folder")
+        if not os.path.isfile(os.path.join(args.resume, "config.yaml")):
+            raise ConfigError(f"--resume {args.resume!r} is not a run folder (it has no config.yaml)")
+        if not args.config:
+            args.config = os.path.join(args.resume, "config.yaml")
     cfg = resolve(args, extra)
     return launch(cfg, resume_dir=args.resume)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from zenrl.launcher import status
+    from pathlib import Path
+
+    from zenrl.launcher.runfolder import read_launcher_info, read_summary
+    from zenrl.launcher.status_client import status
 
     setup_logging(args.log_level, "status")
+    quiet_zenoh(args.log_level)
+    run_dir = None
+    if args.run_dir:
+        run_dir = Path(args.run_dir)
+        if not run_dir.is_dir() and (Path("runs") / args.run_dir).is_dir():
+            run_dir = Path("runs") / args.run_dir  # a run id typed instead of its folder
+        if not run_dir.is_dir():
+            raise ConfigError(f"no run folder {args.run_dir!r} (give runs/<run-id>)")
+        info = read_launcher_info(run_dir)
+        if info is not None and not _alive(info.get("pid")) and not args.router:
+            # a launcher that was killed leaves its launcher.json behind
+            sys.stderr.write(f"zenrl status: run {run_dir.name} is not running: its launcher (pid {info.get('pid')}) "
+                             f"is gone; zenrl run --resume {run_dir} continues it\n")
+            return 1
+        if info is None and not args.router:
+            ended = read_summary(run_dir)
+            if ended is not None:
+                sys.stderr.write(f"zenrl status: run {run_dir.name} is not running; it stopped: "
+                                 f"{ended.get('stop_reason') or 'reason unknown'} (see {run_dir / 'summary.json'})\n")
+                return 1
+            raise ConfigError(f"{str(run_dir)!r} has no launcher.json (not started by zenrl run, or its launcher "
+                              "was killed): give --router EP")
+        if not args.run_id:
+            args.run_id = info["run_id"] if info and info.get("run_id") else run_dir.name
+        if info is not None and not args.router:
+            args.router = info["router"]
     cfg = resolve(args)
-    return status(cfg, cfg.run_id or "default", as_json=args.json, wait_s=args.wait)
+    if not cfg.run_id:
+        raise ConfigError("which run? zenrl status runs/<run-id> (a run of zenrl run), or --run-id ID --router EP")
+    return status(cfg.transport.router or "", cfg.run_id, min(cfg.transport.connect_timeout_s, 5.0),
+                  cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait)
+
+
+def _alive(pid: object) -> bool:
+    """Whether process ``pid`` exists on this machine (a run folder's launcher)."""
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -181,6 +251,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from zenrl import tools
 
     setup_logging(args.log_level, "evaluate")
+    tools.quiet_native_imports()
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
     summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
                              args.workers, args.seed, progress=not args.no_progress, policy=args.policy)
@@ -197,8 +268,9 @@ def cmd_play(args: argparse.Namespace) -> int:
     from zenrl import tools
 
     setup_logging(args.log_level, "play")
+    tools.quiet_native_imports()
     out = tools.play(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.opponent, args.side,
-                     args.seed, args.fps, args.max_steps)
+                     args.seed, args.fps, args.max_steps, args.speedup)
     tools.print_json_line(out)
     return 0
 
@@ -216,6 +288,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from zenrl import tools
 
     setup_logging(args.log_level, "export")
+    tools.quiet_native_imports()
     tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs)))
     return 0
 
@@ -223,6 +296,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="zenrl", description="Distributed actor-learner RL over Eclipse Zenoh.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"zenrl {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     fmt = argparse.RawDescriptionHelpFormatter
     epilog = _options_epilog()
@@ -264,10 +338,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--log-level", default="INFO")
     s.set_defaults(func=cmd_router)
 
-    s = sub.add_parser("status", help="show the live processes of a run")
+    s = sub.add_parser("status", help="show the live processes of a run: zenrl status runs/<run-id>")
+    s.add_argument("run_dir", nargs="?", metavar="RUN_DIR",
+                   help="runs/<run-id> of a running zenrl run (its router is recorded there); "
+                        "otherwise give --run-id and --router")
     _add_config_args(s)
     s.add_argument("--json", action="store_true", help="print JSON")
-    s.add_argument("--wait", type=float, default=3.0, help="seconds to collect stats")
+    s.add_argument("--wait", type=float, default=3.0,
+                   help="listen at most this many seconds (rates need two reports of each process)")
     s.set_defaults(func=cmd_status)
 
     s = sub.add_parser("config", help="print the resolved config (or --list every option)")
@@ -276,7 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_config)
 
     def policy_args(s: argparse.ArgumentParser) -> None:
-        s.add_argument("--checkpoint", required=True, help="a checkpoint file (runs/<id>/checkpoints/ckpt-*.pt)")
+        s.add_argument("--checkpoint", required=True,
+                       help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest checkpoint")
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
         s.add_argument("--env-kwargs", help="JSON object merged over the checkpoint's env.kwargs, e.g. '{\"match_time\": 60}'")
         s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
@@ -300,7 +379,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--opponent", help="match opponent (default: drawn from the env's opponents)")
     s.add_argument("--side", choices=["red", "blue"], help="match side (default: the env's)")
     s.add_argument("--seed", type=int, default=0, help="episode seed")
-    s.add_argument("--fps", type=float, help="frames per second (default: real time)")
+    s.add_argument("--fps", type=float, help="frames per second of the episode (default: real time)")
+    s.add_argument("--speedup", type=float, default=1.0,
+                   help="play this many times faster, e.g. 4 for a 3-minute match in 45 s (a GIF keeps every "
+                        "k-th frame above 25 fps)")
     s.add_argument("--max-steps", type=int, help="stop after this many steps")
     s.set_defaults(func=cmd_play)
 
@@ -318,12 +400,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("zenrl")
+    except PackageNotFoundError:
+        from zenrl import __version__
+
+        return __version__
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except ZenrlError as e:
-        sys.stderr.write(f"zenrl: error: {e}\n")
+        sys.stderr.write(f"zenrl: error: {_RUST_SOURCE.sub('', str(e))}\n")
         return 2
 
 

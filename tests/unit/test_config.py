@@ -41,6 +41,16 @@ def test_errors_name_option_and_value(tmp_path):
     assert load_config(None, ["learner.batch_size=4096", "learner.batches_per_request=16"], environ={}).learner.batches_per_request == 16
 
 
+def test_unknown_option_suggests_the_close_one():
+    with pytest.raises(ConfigError, match=r"learner\.batch_sise: Extra inputs are not permitted; did you mean 'batch_size'\?"):
+        load_config(None, ["learner.batch_sise=3"], environ={})
+    with pytest.raises(ConfigError, match=r"lerner: .*did you mean 'learner'\?"):
+        load_config(None, ["lerner.lr=3"], environ={})
+    with pytest.raises(ConfigError) as e:
+        load_config(None, ["learner.zzzzzz=3"], environ={})
+    assert "did you mean" not in str(e.value)  # nothing close: no guess
+
+
 def test_frozen():
     cfg = load_config(None, environ={})
     with pytest.raises(Exception):

@@ -20,7 +20,7 @@ from zenrl.common.config import RunConfig, SelfPlayConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import ActorCritic, QNetwork, arch_fingerprint, num_actions, obs_spec
-from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, sampled_actions,
+from zenrl.common.policy_io import (SnapshotLeague, checkpoint_config, load_policy, read_checkpoint, sampled_actions,
                                     single_to_flat, wrap_selfplay)
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
@@ -225,7 +225,7 @@ def test_export_matches_greedy_actions(ckpts, tmp_path, which):
     out = tmp_path / "policy.pt"
     meta = tools.export(str(ckpt), str(out))
     state = read_checkpoint(ckpt)
-    env = make_env(tools.env_config_for(tools.checkpoint_config(state)))
+    env = make_env(tools.env_config_for(checkpoint_config(state)))
     policy = load_policy(ckpt, env.observation_space, env.action_space)
     with warnings.catch_warnings():  # torch 2.13 deprecates TorchScript (it still loads)
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -297,3 +297,97 @@ def test_league_keeps_newest_snapshots_and_skips_bad_files(ckpts, tmp_path):
         assert league.refresh(now=4.0 + 2 * i)
     assert [n for n, _ in league.snapshots] == ["ckpt-000000000006.pt", "ckpt-000000000007.pt"]
     env.close()
+
+
+# --------------------------------------------------------------------------------------------
+def _zenrl(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "zenrl.cli", *args], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parents[2])
+
+
+def test_tools_take_the_newest_checkpoint_of_a_folder(tmp_path):
+    """evaluate / play / export given a run folder or its checkpoints folder, as a user types
+    them: the newest checkpoint is used, and stdout's last line is the JSON (no pybullet banner)."""
+    run = tmp_path / "BurgerWar-v0-apex-1"
+    make_checkpoint(run / "checkpoints", BW, SHORT_MATCH, seed=1, step=10)
+    newest = make_checkpoint(run / "checkpoints", BW, SHORT_MATCH, seed=2, step=20)
+    p = _zenrl("export", "--checkpoint", str(run), "--out", str(tmp_path / "p.pt"))
+    assert p.returncode == 0, p.stderr
+    assert "pybullet build time" not in p.stdout
+    assert json.loads(p.stdout.strip().splitlines()[-1])["out"] == str(tmp_path / "p.pt")
+    p = _zenrl("evaluate", "--checkpoint", str(run / "checkpoints"), "--opponents", "cheese", "--episodes", "2",
+               "--workers", "2", "--no-progress")
+    assert p.returncode == 0, p.stderr
+    assert "pybullet build time" not in p.stdout  # nor from the worker processes
+    assert json.loads(p.stdout.strip().splitlines()[-1])["checkpoint"] == str(newest)
+    p = _zenrl("play", "--checkpoint", str(run), "--out", str(tmp_path / "m.gif"), "--opponent", "cheese",
+               "--side", "blue", "--speedup", "10")
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    assert res["checkpoint"] == str(newest) and res["side"] == "blue"
+    assert res["fps"] <= 25 and res["frames"] < res["recorded_frames"]  # sped up by dropping frames
+    empty = tmp_path / "empty-run"
+    (empty / "checkpoints").mkdir(parents=True)
+    p = _zenrl("export", "--checkpoint", str(empty), "--out", str(tmp_path / "q.pt"))
+    assert p.returncode == 2 and "no ckpt-*.pt checkpoint in" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def test_match_frames_mark_the_agent(ckpts):
+    from zenrl.tools.media import SIDE_RGB
+
+    policy, env, _ = tools.load_policy_env(str(ckpts["match"]), render_mode="rgb_array", opponents=["cheese"])
+    try:
+        for side in ("red", "blue"):
+            frames, res = tools.record_episode(policy, env, seed=1, options={"side": side}, max_steps=2)
+            assert res["side"] == side
+            corner = frames[-1][0, 0]  # the border in the agent's colour
+            assert tuple(int(c) for c in corner) == SIDE_RGB[side]
+    finally:
+        env.close()
+
+
+def test_speed_up_keeps_every_kth_frame_and_the_last():
+    from zenrl.tools.media import speed_up
+
+    frames = [np.full((2, 2, 3), i, np.int32) for i in range(901)]  # a 3-minute match at 5 decisions/s
+    kept, fps = speed_up(frames, 5.0, 4.0, 25.0)
+    assert len(kept) == 901 and fps == 20.0
+    kept, fps = speed_up(frames, 5.0, 20.0, 25.0)
+    assert fps == 25.0 and [int(f[0, 0, 0]) for f in kept] == list(range(0, 901, 4))
+    kept, fps = speed_up(frames[:10], 5.0, 10.0, 25.0)  # k = 2: 0, 2, ..., 8, then the last (9)
+    assert [int(f[0, 0, 0]) for f in kept] == [0, 2, 4, 6, 8, 9] and fps == 25.0
+    with pytest.raises(ZenrlError, match="speedup"):
+        speed_up(frames, 5.0, 0.0, 25.0)
+
+
+def test_evaluate_table_fits_80_columns():
+    from rich.console import Console
+
+    results = [tools.EpisodeResult(i, i, opp, "red" if i % 2 else "blue", 1.0, 100, "win" if i % 3 else "loss", 3, 1)
+               for i, opp in enumerate(["clubhouse", "waypoint"] * 50)]
+    summary = tools.summarize(results, match=True)
+    summary.update({"env": "zenrl/BurgerWar-v0", "checkpoint": "runs/x/checkpoints/ckpt-000000123456.pt"})
+    console = Console(width=80, record=True)
+    console.print(tools.render_table(summary))
+    text = console.export_text()
+    assert max(len(x) for x in text.splitlines()) <= 80 and "…" not in text, text
+    assert "66% [" in text and "clubhouse" in text and "waypoint" in text, text
+
+
+def test_plot_breaks_at_a_resume_and_draws_env_steps(tmp_path):
+    from zenrl.tools.plotting import _break_gaps
+
+    pts = np.array([[0.0, 1.0], [5.0, 2.0], [10.0, 3.0], [20.0, 4.0], [25.0, 5.0]])
+    out = _break_gaps(pts, breaks=[15.0])  # a segment starting at t=15
+    assert np.isnan(out[3]).all() and out.shape == (6, 2)
+    paused = np.array([[float(t), 1.0] for t in range(0, 50, 5)] + [[4000.0, 1.0], [4005.0, 1.0]])
+    assert np.isnan(_break_gaps(paused, [])).any(axis=1).sum() == 1  # an hour's pause without a summary
+    pytest.importorskip("matplotlib")
+    run = tmp_path / "run-2"
+    run.mkdir()
+    with open(run / "metrics.jsonl", "w") as f:
+        for i in range(10):
+            f.write(json.dumps({"time": 1000.0 + 5 * i, "source": "launcher", "step": 1000 * i,
+                                "env_steps": 1000 * i, "env_steps_per_s": 200.0}) + "\n")
+    res = tools.plot(run, tmp_path / "c.png", 400, 300)
+    assert res["panels"] == ["env steps/s"]

@@ -1,0 +1,141 @@
+"""A new user's first contact with ``zenrl``, driven as they would drive it: a subprocess, its
+exit code, what it prints and what it leaves on disk.
+
+1. a mistake in the env fails at once with the env's reason, exit code 2 and no run folder; a
+   child stopping on its configuration is not restarted and its error reaches the terminal;
+2. ``zenrl status runs/<id>`` finds the run's router and shows rates and the evaluator, quietly;
+3. ``summary.json`` says how a run ended and covers every segment of a resumed run."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from tests.conftest import ROOT, free_port, wait_until, zenrl_pids
+
+pytestmark = pytest.mark.integration
+
+CONFIG = "configs/cartpole_apex.yaml"
+ZENOH_NOISE = re.compile(r"\bWARN\b|\.rs:\d+")
+
+
+def zenrl(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "zenrl.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
+    cmd = ["run", "--config", CONFIG, "--run-id", run_id, "--set", f"runs_dir={tmp_path}",
+           "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]"]
+    for s in sets:
+        cmd += ["--set", s]
+    return cmd
+
+
+@pytest.mark.parametrize("sets, reason", [
+    (("env.id=CartPol-v1",), "Did you mean: `CartPole`"),
+    (("env.id=Pendulum-v1",), "need a Discrete action space"),
+    (("env.kwargs={gravity_typo: 1}",), "unexpected keyword argument 'gravity_typo'"),
+])
+def test_env_mistake_fails_at_once_with_its_reason(tmp_path, run_id, sets, reason):
+    p = zenrl(*run_args(tmp_path, run_id, *sets), timeout_s=60)
+    assert p.returncode == 2, (p.returncode, p.stderr)
+    errors = [x for x in p.stderr.splitlines() if x.startswith("zenrl: error:")]
+    assert len(errors) == 1 and reason in errors[0], p.stderr
+    assert "Traceback" not in p.stderr and "restarting" not in p.stderr
+    assert not any(tmp_path.iterdir()), list(tmp_path.iterdir())  # no run folder, nothing started
+    assert not zenrl_pids(run_id)
+
+
+def test_child_config_error_is_not_restarted(tmp_path, run_id):
+    """``--resume`` of a run that never saved a checkpoint: the learner refuses (exit 78); the
+    launcher stops at once with the learner's reason instead of restarting it five times."""
+    run_dir = tmp_path / run_id
+    run_dir.mkdir()
+    cfg = zenrl("config", "--config", CONFIG, "--run-id", run_id, "--set", f"runs_dir={tmp_path}",
+                "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]")
+    assert cfg.returncode == 0, cfg.stderr
+    (run_dir / "config.yaml").write_text(cfg.stdout)
+    p = zenrl("run", "--resume", str(run_dir), "--no-progress", timeout_s=120)
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    assert "learner failed on its configuration" in p.stderr and "no checkpoint in" in p.stderr, p.stderr[-3000:]
+    assert "restarting" not in p.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("learner failed on its configuration: ")
+    assert summary["restarts"]["learner"] == 0
+    assert (run_dir / "logs" / "learner.log").read_text().count("no checkpoint in") >= 1
+    assert not zenrl_pids(run_id)
+
+    missing = zenrl("run", "--resume", str(tmp_path / "no-such-run"))
+    assert missing.returncode == 2 and "no such run folder" in missing.stderr, missing.stderr
+
+
+def _status_json(run_dir) -> dict:
+    p = zenrl("status", str(run_dir), "--json", "--wait", "4", timeout_s=60)
+    assert p.returncode in (0, 1), p.stderr
+    assert not ZENOH_NOISE.search(p.stderr), p.stderr
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def test_status_ctrl_c_and_resume(tmp_path, run_id):
+    run_dir = tmp_path / run_id
+    cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=120",
+                                                          "evaluator.interval_s=1")]
+    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_until(lambda: (run_dir / "launcher.json").is_file(), 30, "launcher.json")
+
+        def ready():
+            rows = {r["role"]: r for r in _status_json(run_dir)["processes"]}
+            ok = all(k in rows for k in ("replay", "learner", "actor", "evaluator")) \
+                and rows["learner"].get("updates", 0) > 0 and rows["evaluator"].get("eval_return") is not None \
+                and rows["actor"].get("rate") is not None
+            return rows if ok else None
+
+        rows = wait_until(ready, 60, "every role in zenrl status, the learner training")
+        actor = rows["actor"]
+        assert actor["rate_unit"] == "env steps/s" and 0 < actor["rate"] < actor["env_steps"], actor
+        assert rows["learner"]["rate_unit"] == "updates/s" and rows["learner"]["rate"] > 0
+        table = zenrl("status", str(run_dir), "--wait", "2", timeout_s=60)
+        assert table.returncode == 0 and not ZENOH_NOISE.search(table.stdout + table.stderr), table.stderr
+        for role in ("replay", "learner", "actor", "evaluator"):
+            assert role in table.stdout
+        assert "env steps/s" in table.stdout and "return" in table.stdout, table.stdout
+        launcher.send_signal(signal.SIGINT)  # what Ctrl-C sends
+        out, _ = launcher.communicate(timeout=90)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+    assert launcher.returncode == 0, out[-3000:]
+    assert "stopped: interrupted by user (Ctrl-C)" in out, out[-2000:]
+    assert not ZENOH_NOISE.search(out), out[-2000:]
+    first = json.loads((run_dir / "summary.json").read_text())
+    assert first["stop_reason"] == "interrupted by user (Ctrl-C)"
+    assert not (run_dir / "launcher.json").exists()
+    ended = zenrl("status", str(run_dir))
+    assert ended.returncode == 1 and "not running" in ended.stderr and "Ctrl-C" in ended.stderr, ended.stderr
+    no_run = zenrl("status")
+    assert no_run.returncode == 2 and "which run?" in no_run.stderr and "default" not in no_run.stdout
+
+    # resume: the totals continue where the first segment stopped
+    steps0 = first["env_steps"]
+    p = zenrl("run", "--resume", str(run_dir), "--set", f"max_env_steps={steps0 + 5000}", "--set", "max_wall_s=120",
+              timeout_s=180)
+    assert p.returncode == 0, p.stderr[-3000:]
+    progress = [json.loads(x.split("progress ", 1)[1]) for x in p.stderr.splitlines() if " progress {" in x]
+    assert progress and progress[0]["env_steps"] >= steps0 and progress[0]["elapsed_s"] >= first["wall_s"], progress[:2]
+    s = json.loads((run_dir / "summary.json").read_text())
+    assert [seg["resumed"] for seg in s["segments"]] == [False, True]
+    assert s["segments"][0]["env_steps"] == steps0 and s["segments"][0]["stop_reason"] == first["stop_reason"]
+    assert s["env_steps"] == steps0 + s["segments"][1]["env_steps"] >= steps0 + 5000
+    assert s["wall_s"] == pytest.approx(sum(seg["wall_s"] for seg in s["segments"]))
+    assert s["stop_reason"].startswith(f"max_env_steps {steps0 + 5000} reached")
+    assert len(s["evals"]) >= len(first["evals"]) and s["evals"][:len(first["evals"])] == first["evals"]
+    assert not zenrl_pids(run_id)

@@ -1,0 +1,128 @@
+"""What ``zenrl run`` shows while it runs: the figures heard from the run's processes (Zenoh
+``stats``, ``episodes`` and ``eval`` keys) and the live table or periodic log line made of them."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from zenrl.common import protocol as P
+
+RATE_WINDOW_S = 5.0  # env steps/s in the progress display is measured over this window
+
+
+@dataclass
+class Progress:
+    """What the monitor has heard. A resumed run starts from the totals of its earlier segments
+    (``base_env_steps``, ``base_elapsed_s``), so the display continues where they stopped."""
+
+    start: float = field(default_factory=time.monotonic)
+    base_env_steps: int = 0
+    base_elapsed_s: float = 0.0
+    first_step_t: float | None = None
+    actor_steps: dict[str, int] = field(default_factory=dict)
+    learner: dict[str, Any] = field(default_factory=dict)
+    replay: dict[str, Any] = field(default_factory=dict)
+    evals: list[dict[str, Any]] = field(default_factory=list)
+    recent_returns: list[float] = field(default_factory=list)
+    env_steps_rate: float = 0.0
+    # (time, total env steps) whenever the total changed, the last RATE_WINDOW_S seconds of them
+    # (plus one older as the base): actors report about once a second, so a rate over two
+    # consecutive 0.5 s ticks was mostly 0 and otherwise double
+    _steps_seen: deque[tuple[float, int]] = field(default_factory=deque)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def segment_env_steps(self) -> int:
+        """Env steps of this launch only."""
+        return sum(self.actor_steps.values())
+
+    @property
+    def env_steps(self) -> int:
+        """Env steps of the whole run (earlier segments included)."""
+        return self.base_env_steps + self.segment_env_steps
+
+    def elapsed_s(self, now: float | None = None) -> float:
+        """Wall time of the whole run (earlier segments included)."""
+        return self.base_elapsed_s + ((time.monotonic() if now is None else now) - self.start)
+
+    def on_message(self, key: str, payload: bytes) -> None:
+        try:
+            msg = P.decode_any(payload)
+        except P.ProtocolError:
+            return
+        with self.lock:
+            if isinstance(msg, P.Stats):
+                if msg.role == "actor":
+                    self._actor(msg.id, int(msg.values.get("env_steps", 0)))
+                elif msg.role == "learner":
+                    self.learner = dict(msg.values)
+                elif msg.role == "replay":
+                    self.replay = dict(msg.values)
+            elif isinstance(msg, P.EpisodeStats):
+                self._actor(msg.actor_id, msg.env_steps)
+                self.recent_returns = (self.recent_returns + [float(x) for x in msg.returns])[-100:]
+            elif isinstance(msg, P.EvalResult):
+                self.evals.append({"t": self.elapsed_s(), "version": msg.version, "updates": msg.updates,
+                                   "env_steps": self.env_steps, "mean": float(msg.returns.mean()),
+                                   "std": float(msg.returns.std()), "n": int(msg.returns.size),
+                                   "win_rate": None if msg.outcomes is None else float((msg.outcomes == 1).mean()),
+                                   "since_first_step": None if self.first_step_t is None else time.monotonic() - self.first_step_t})
+
+    def _actor(self, actor_id: str, steps: int) -> None:
+        if steps > 0 and self.first_step_t is None:
+            self.first_step_t = time.monotonic()
+        self.actor_steps[actor_id] = max(steps, self.actor_steps.get(actor_id, 0))
+
+    def tick_rate(self, now: float | None = None) -> None:
+        """Update ``env_steps_rate``: env steps/s between the changes of the total seen over the
+        last :data:`RATE_WINDOW_S` seconds; 0 once nothing has changed for that long."""
+        now = time.monotonic() if now is None else now
+        seen, s = self._steps_seen, self.env_steps
+        if not seen or s != seen[-1][1]:
+            seen.append((now, s))
+        while len(seen) > 2 and now - seen[1][0] > RATE_WINDOW_S:
+            seen.popleft()
+        if now - seen[-1][0] > RATE_WINDOW_S:
+            self.env_steps_rate = 0.0
+        elif len(seen) >= 2:
+            (t0, s0), (t1, s1) = seen[0], seen[-1]
+            self.env_steps_rate = (s1 - s0) / max(t1 - t0, 1e-9)
+
+    @property
+    def last_eval(self) -> float | None:
+        return self.evals[-1]["mean"] if self.evals else None
+
+    def status_line(self) -> dict[str, Any]:
+        """The figures of the live display, JSON-ready (win rate as a fraction)."""
+        return {"elapsed_s": round(self.elapsed_s(), 1), "env_steps": self.env_steps,
+                "env_steps_per_s": round(self.env_steps_rate, 1), "updates": self.learner.get("updates", 0),
+                "updates_per_s": round(float(self.learner.get("updates_per_s", 0.0)), 1),
+                "replay_size": self.replay.get("size", 0), "weights_version": self.learner.get("version", 0),
+                "train_return_100": round(float(np.mean(self.recent_returns)), 1) if self.recent_returns else None,
+                "eval_return": None if self.last_eval is None else round(self.last_eval, 1),
+                **({"eval_win_rate": round(self.evals[-1]["win_rate"], 3)}
+                   if self.evals and self.evals[-1].get("win_rate") is not None else {})}
+
+
+def render_table(run_id: str, line: dict[str, Any], stop_reason: str = ""):
+    """The live table of :meth:`Progress.status_line` (rates as rates, the win rate in %)."""
+    from rich.table import Table
+
+    t = Table(title=f"zenrl run {run_id}", show_header=False)
+    for k, v in line.items():
+        if v is None:
+            text = "-"
+        elif k == "eval_win_rate":
+            text = f"{v:.0%}"
+        else:
+            text = str(v)
+        t.add_row(k.replace("_", " "), text)
+    if stop_reason:
+        t.add_row("stopped", stop_reason)
+    return t

@@ -1,0 +1,359 @@
+"""``zenrl run``'s supervisor: checks that the env can be made, opens an in-process Zenoh
+router, starts the children as fresh interpreters (never forked from a process holding a Zenoh
+session), restarts a crashed one (the learner from its checkpoint) unless it failed on its
+configuration, and stops everything on Ctrl-C, a budget, or a solved eval."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from zenrl import EXIT_CONFIG
+from zenrl.common.config import RunConfig
+from zenrl.common.errors import ConfigError
+from zenrl.launcher.display import Progress, render_table
+from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, last_error_line, read_summary,
+                                      remove_launcher_info, write_json_atomic, write_launcher_info)
+from zenrl.placement import describe, plan, usable_cpus
+
+log = logging.getLogger("zenrl.launcher")
+
+PARENT_ENV = "ZENRL_PARENT_PID"
+#: how often progress is logged (no terminal) and written to metrics.jsonl
+PROGRESS_EVERY_S = 5.0
+#: how often summary.json is rewritten while the run goes on (so that a killed launcher leaves one)
+SUMMARY_EVERY_S = 30.0
+#: the stop reason a summary written while the run goes on carries
+RUNNING = "still running (or its launcher was killed)"
+
+
+def new_run_id(cfg: RunConfig) -> str:
+    env = cfg.env.id.split("/")[-1].replace(":", "-")
+    return f"{env}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}-s{cfg.seed}"
+
+
+def _port_free(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+            return True
+        except OSError:
+            return False
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _split_endpoint(ep: str) -> tuple[str, str, int]:
+    proto, rest = ep.split("/", 1)
+    host, port = rest.rsplit(":", 1)
+    return proto, host, int(port)
+
+
+def _first_line(text: str) -> str:
+    return next((x.strip() for x in str(text).splitlines() if x.strip()), "")
+
+
+def check_env(cfg: RunConfig) -> None:
+    """Make, inspect and reset the run's env once, here, before anything starts: a mistake in
+    ``env.id`` / ``env.kwargs`` or an env zenrl cannot learn (continuous actions) is then one
+    :class:`ConfigError` line instead of every child failing in its log."""
+    from zenrl.common.env_factory import make_env
+    from zenrl.common.networks import num_actions, obs_spec
+    from zenrl.tools.loading import quiet_native_imports
+
+    quiet_native_imports()  # pybullet's build-time banner is noise in the launcher's terminal
+    where = f"env.id={cfg.env.id!r}"
+    try:
+        env = make_env(cfg.env)
+    except ConfigError as e:
+        raise ConfigError(_first_line(str(e))) from None
+    except Exception as e:  # an env's own constructor may raise anything for bad kwargs
+        raise ConfigError(f"{where} with env.kwargs={cfg.env.kwargs!r} cannot be made: "
+                          f"{type(e).__name__}: {_first_line(str(e))}") from None
+    try:
+        num_actions(env.action_space)
+        obs_spec(env.observation_space)
+        env.reset(seed=cfg.seed)
+    except Exception as e:  # as above: the env's code, not ours
+        raise ConfigError(f"{where}: {_first_line(str(e)) or type(e).__name__}") from None
+    finally:
+        env.close()
+
+
+@dataclass
+class Child:
+    name: str
+    role: str
+    args: list[str]
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    log_path: Path | None = None
+
+
+class Launcher:
+    def __init__(self, cfg: RunConfig, resume: bool = False) -> None:
+        self.run_id = cfg.run_id or new_run_id(cfg)
+        self.cfg = cfg.model_copy(update={"run_id": self.run_id})
+        self.resume = resume
+        self.run_dir = Path(cfg.runs_dir) / self.run_id
+        self.stop = threading.Event()
+        before = read_summary(self.run_dir) if resume else None
+        self.earlier = earlier_segments(before)
+        self.earlier_evals = [e for e in (before or {}).get("evals", []) if isinstance(e, dict)]
+        self.progress = Progress(base_env_steps=sum(int(s.get("env_steps") or 0) for s in self.earlier),
+                                 base_elapsed_s=sum(float(s.get("wall_s") or 0.0) for s in self.earlier))
+        if before and isinstance(before.get("learner"), dict):
+            # the learner's counters continue from its checkpoint: show the last ones heard until
+            # it reports again (the replay's size is not carried: it restarts empty unless durable)
+            self.progress.learner = dict(before["learner"])
+        self.started_at = time.time()
+        self.children: list[Child] = []
+        self.max_restarts = 5
+        self.stop_reason = ""
+        self.exit_code = 0
+        # updates when this launch began: the learner resumes from its checkpoint, which may be
+        # older than the last count an earlier segment heard
+        self.updates_at_start: int | None = None if resume else 0
+        self.placement = plan(self.cfg.cpu_placement, self.cfg.algo, self.cfg.learner.torch_threads, usable_cpus())
+        self.endpoint = ""
+        self._metrics = None
+
+    def _stop_with(self, reason: str, exit_code: int = 0) -> None:
+        """Stop the run for ``reason`` (the first reason given wins)."""
+        if not self.stop_reason:
+            self.stop_reason = reason
+            self.exit_code = exit_code
+        self.stop.set()
+
+    # -- processes ---------------------------------------------------------------------------
+    def _endpoints(self) -> tuple[list[str], str]:
+        listen = list(self.cfg.transport.listen)
+        proto, host, port = _split_endpoint(listen[0])
+        if self.cfg.transport.router_config is None and not _port_free(host if host != "0.0.0.0" else "127.0.0.1", port):
+            port = free_port()
+            log.info("port %d is busy; the embedded router listens on %d instead", _split_endpoint(listen[0])[2], port)
+            listen = [f"{proto}/{host}:{port}"]
+        connect_host = "127.0.0.1" if host in ("0.0.0.0", "[::]") else host
+        return listen, f"{proto}/{connect_host}:{port}"
+
+    def _spawn(self, c: Child, extra: list[str] | None = None) -> None:
+        cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(self.run_dir / "config.yaml"),
+               "--run-id", self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
+        env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
+        if self.placement is not None and c.role in self.placement:
+            env.update(self.placement[c.role].env())
+        c.log_path = self.run_dir / "logs" / f"{c.name}.log"
+        with open(c.log_path, "ab") as f:
+            c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        log.debug("started %s (pid %d): %s", c.name, c.proc.pid, " ".join(cmd))
+
+    def _plan(self) -> list[Child]:
+        kids = []
+        if self.cfg.algo == "apex":
+            kids.append(Child("replay", "replay", []))
+        kids.append(Child("learner", "learner", ["--resume"] if self.resume else []))
+        for i in range(self.cfg.actor.num_actors):
+            kids.append(Child(f"actor-{i}", "actor", ["--id", f"actor-{i}", "--slot", str(i)]))
+        if self.cfg.evaluator.enabled:
+            kids.append(Child("evaluator", "evaluator", []))
+        return kids
+
+    def _supervise(self) -> None:
+        for c in self.children:
+            if c.proc is None or c.proc.poll() is None or self.stop.is_set():
+                continue
+            rc = c.proc.returncode
+            why = last_error_line(c.log_path) or "(empty log)"
+            if rc == EXIT_CONFIG:
+                log.error("%s stopped on a configuration error (not restarted): %s  [log %s]", c.name, why, c.log_path)
+                self._stop_with(f"{c.name} failed on its configuration: {why}", 2)
+                return
+            if c.restarts >= self.max_restarts:
+                log.error("%s exited with code %s and was restarted %d times already; stopping the run. "
+                          "Last error: %s  [log %s]", c.name, rc, c.restarts, why, c.log_path)
+                self._stop_with(f"{c.name} keeps failing (exit code {rc}): {why}", 1)
+                return
+            c.restarts += 1
+            log.warning("%s exited with code %s (%s); restarting (%d/%d), log %s", c.name, rc, why, c.restarts,
+                        self.max_restarts, c.log_path)
+            self._spawn(c, ["--auto-resume"] if c.role == "learner" and "--resume" not in c.args else None)
+
+    def _terminate(self) -> None:
+        # the replay last, so that actors' final chunks reach it; the learner needs nothing from
+        # the actors to save its checkpoint, so it stops with them (one exit wait instead of two)
+        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner")],
+                 [c for c in self.children if c.role == "replay"]]
+        for group in order:
+            for c in group:
+                if c.proc is not None and c.proc.poll() is None:
+                    c.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + 20
+            for c in group:
+                if c.proc is None:
+                    continue
+                try:
+                    c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    log.warning("%s did not stop within 20 s; killing it", c.name)
+                    c.proc.kill()
+                    c.proc.wait()
+
+    # -- stop conditions ---------------------------------------------------------------------
+    def _check_done(self) -> None:
+        cfg, p = self.cfg, self.progress
+        updates = int(p.learner.get("updates", 0))
+        if cfg.max_env_steps is not None and p.env_steps >= cfg.max_env_steps:
+            self._stop_with(f"max_env_steps {cfg.max_env_steps} reached ({p.env_steps} env steps)")
+        elif cfg.max_updates is not None and updates >= cfg.max_updates:
+            self._stop_with(f"max_updates {cfg.max_updates} reached ({updates} updates)")
+        elif cfg.max_wall_s is not None and time.monotonic() - p.start >= cfg.max_wall_s:
+            self._stop_with(f"max_wall_s {cfg.max_wall_s} reached (this launch's wall-clock budget)")
+        elif cfg.target_return is not None and p.last_eval is not None and p.last_eval >= cfg.target_return:
+            self._stop_with(f"solved: eval return {p.last_eval:.1f} >= target_return {cfg.target_return}")
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        if signum == signal.SIGINT:
+            self._stop_with("interrupted by user (Ctrl-C)")
+        else:
+            self._stop_with(f"stopped by {signal.Signals(signum).name} (e.g. docker stop, kill)")
+
+    # -- main --------------------------------------------------------------------------------
+    def run(self) -> int:
+        from zenrl.common import protocol as P
+        from zenrl.common.metrics import MetricsWriter
+        from zenrl.common.transport import Node, open_router
+
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False))
+        signal.signal(signal.SIGINT, self._on_signal)
+        signal.signal(signal.SIGTERM, self._on_signal)
+        listen, self.endpoint = self._endpoints()
+        every_cpu = usable_cpus()
+        if self.placement is not None:
+            # on Linux this sets the calling thread's CPUs: the router's threads, started by
+            # open_router, inherit them and share the non-learner CPUs ...
+            os.sched_setaffinity(0, self.placement["router"].cpus)
+            log.info("cpu placement (cpu_placement=auto; off leaves it to the OS): %s", describe(self.placement))
+        try:
+            router = open_router(listen, self.cfg.transport.router_config)
+        finally:
+            if self.placement is not None:
+                # ... while the children start on every CPU (their imports run in parallel) and
+                # place themselves once imported (zenrl.placement.apply_from_env)
+                os.sched_setaffinity(0, every_cpu)
+        write_launcher_info(self.run_dir, self.run_id, self.endpoint)
+        log.info("run %s: router on %s, logs in %s (zenrl status %s)", self.run_id, listen, self.run_dir / "logs",
+                 self.run_dir)
+        node = Node(session=router)
+        self._metrics = MetricsWriter(self.run_dir)
+        try:
+            k = P.Keys(self.run_id)
+            for key in (k.stats_all, k.episodes_all, k.eval):
+                node.subscribe(key, self.progress.on_message)
+            self.children = self._plan()
+            for c in self.children:
+                self._spawn(c)
+            self._loop()
+        except KeyboardInterrupt:
+            self._stop_with("interrupted by user (Ctrl-C)")
+        finally:
+            self.stop.set()
+            self._terminate()
+            self._write_summary()
+            remove_launcher_info(self.run_dir)
+            self._metrics.close()
+            node.close()
+        log.info("run %s stopped: %s", self.run_id, self.stop_reason or "stopped")
+        return self.exit_code
+
+    def _loop(self) -> None:
+        live = None
+        if self.cfg.progress:
+            from rich.console import Console
+
+            console = Console(stderr=True)
+            if console.is_terminal:
+                from rich.live import Live
+
+                live = Live(self._table(), console=console, refresh_per_second=2, transient=False)
+                live.start()
+        last_progress = last_summary = time.monotonic()
+        try:
+            while not self.stop.wait(0.5):
+                p = self.progress
+                p.tick_rate()
+                if self.updates_at_start is None and "updates" in p.learner:
+                    self.updates_at_start = int(p.learner["updates"])
+                self._supervise()
+                self._check_done()
+                if live is not None:
+                    live.update(self._table())
+                if time.monotonic() - last_progress >= PROGRESS_EVERY_S:
+                    last_progress = time.monotonic()
+                    line = p.status_line()
+                    if live is None and self.cfg.progress:
+                        log.info("progress %s", json.dumps(line))
+                    if p.segment_env_steps:
+                        self._metrics.write("launcher", p.env_steps, {"env_steps": p.env_steps,
+                                                                      "env_steps_per_s": p.env_steps_rate})
+                if time.monotonic() - last_summary >= SUMMARY_EVERY_S:
+                    last_summary = time.monotonic()
+                    self._write_summary()
+        finally:
+            if live is not None:
+                live.update(self._table())
+                live.stop()
+
+    def _table(self):
+        return render_table(self.run_id, self.progress.status_line(), self.stop_reason)
+
+    def summary(self) -> dict[str, Any]:
+        """``summary.json``: the whole run, over this launch and the earlier segments of a
+        resumed run (``segments``, oldest first)."""
+        p = self.progress
+        now = time.monotonic()
+        reason = self.stop_reason or RUNNING
+        updates = p.learner.get("updates")
+        segment = {"started_at": self.started_at, "ended_at": time.time(), "wall_s": now - p.start,
+                   "env_steps": p.segment_env_steps, "updates_at_start": self.updates_at_start,
+                   "updates_at_end": updates, "stop_reason": reason, "resumed": self.resume,
+                   "startup_s": None if p.first_step_t is None else p.first_step_t - p.start,
+                   "restarts": {c.name: c.restarts for c in self.children}}
+        evals = self.earlier_evals + [dict(e, segment=len(self.earlier)) for e in p.evals]
+        solved = None
+        if self.cfg.target_return is not None:
+            solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
+        return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
+                "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
+                "replay": p.replay, "evals": evals, "target_return": self.cfg.target_return,
+                "solved": solved is not None,
+                "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
+                "restarts": segment["restarts"], "segments": [*self.earlier, segment]}
+
+    def _write_summary(self) -> None:
+        write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())
+
+
+def launch(cfg: RunConfig, resume_dir: str | None = None) -> int:
+    """Entry point of ``zenrl run``: the env is checked before anything is created on disk."""
+    if resume_dir is not None:
+        rd = Path(resume_dir)
+        cfg = cfg.model_copy(update={"run_id": rd.name, "runs_dir": str(rd.parent)})
+    check_env(cfg)
+    return Launcher(cfg, resume=resume_dir is not None).run()

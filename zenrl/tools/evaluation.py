@@ -1,0 +1,225 @@
+"""``zenrl evaluate``: N episodes (matches: per opponent, half as red, half as blue) in ``spawn``
+worker processes (no Zenoh), summarised with confidence intervals."""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from zenrl.common.envs.bw_judge import match_outcome
+from zenrl.common.errors import ZenrlError
+from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_policy_env, quiet_native_imports,
+                                 resolve_checkpoint)
+from zenrl.tools.stats import mean_ci, wilson
+
+@dataclass(frozen=True)
+class Job:
+    """One evaluation episode: ``opponent`` None for a non-match env; ``side`` "red"/"blue"."""
+
+    index: int
+    seed: int
+    opponent: str | None = None
+    side: str | None = None
+
+
+@dataclass
+class EpisodeResult:
+    index: int
+    seed: int
+    opponent: str | None
+    side: str | None
+    ret: float
+    length: int
+    outcome: str | None = None  # "win" | "draw" | "loss" (match envs)
+    my_score: int | None = None
+    enemy_score: int | None = None
+
+
+class EpisodeRunner:
+    """Loads the checkpoint once and plays :class:`Job` episodes (one per call)."""
+
+    def __init__(self, checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
+                 opponents: Sequence[str] | None, sample: bool = False) -> None:
+        torch.set_num_threads(1)
+        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=opponents, sample=sample)
+
+    def run(self, job: Job) -> EpisodeResult:
+        self.policy.reseed(job.seed)  # a sampled episode depends on its job only, not on the worker
+        options = {}
+        if job.opponent is not None:
+            options = {"opponent": job.opponent, "side": job.side}
+        obs, info = self.env.reset(seed=job.seed, options=options or None)
+        ret, n, done = 0.0, 0, False
+        while not done:
+            obs, r, term, trunc, info = self.env.step(self.policy(obs))
+            ret += float(r)
+            n += 1
+            done = term or trunc
+        res = EpisodeResult(job.index, job.seed, job.opponent, job.side, ret, n)
+        if job.opponent is not None:
+            res.outcome, res.my_score, res.enemy_score = match_outcome(info)
+        return res
+
+    def close(self) -> None:
+        self.env.close()
+
+
+_RUNNER: EpisodeRunner | None = None  # one per worker process (set by the pool initializer)
+
+
+def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
+                 opponents: Sequence[str] | None, sample: bool = False) -> None:
+    global _RUNNER
+    quiet_native_imports()  # the worker shares the parent's stdout, whose last line is the JSON
+    _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents, sample)
+
+
+def _run_job(job: Job) -> EpisodeResult:
+    if _RUNNER is None:
+        raise RuntimeError("worker not initialised")
+    return _RUNNER.run(job)
+
+
+def make_jobs(episodes: int, opponents: Sequence[str] | None, seed: int) -> list[Job]:
+    """``episodes`` per opponent, alternating red/blue (same seeds for every opponent); one
+    list of plain episodes when ``opponents`` is None."""
+    if not opponents:
+        return [Job(i, seed + i) for i in range(episodes)]
+    jobs = []
+    for opp in opponents:
+        for j in range(episodes):
+            jobs.append(Job(len(jobs), seed + j, opp, "red" if j % 2 == 0 else "blue"))
+    return jobs
+
+
+def summarize(results: Iterable[EpisodeResult], match: bool) -> dict[str, Any]:
+    """Per-opponent (match) or overall (other envs) statistics, JSON-ready."""
+    results = sorted(results, key=lambda r: r.index)
+    if not match:
+        m, lo, hi = mean_ci([r.ret for r in results])
+        return {"kind": "return", "episodes": len(results),
+                "rows": [{"opponent": None, "episodes": len(results), "return_mean": m, "return_ci95": [lo, hi],
+                          "return_std": float(np.std([r.ret for r in results])) if results else float("nan"),
+                          "length_mean": float(np.mean([r.length for r in results])) if results else float("nan")}]}
+    rows = []
+    for opp in dict.fromkeys(r.opponent for r in results):
+        rs = [r for r in results if r.opponent == opp]
+        n = len(rs)
+        w = sum(r.outcome == "win" for r in rs)
+        d = sum(r.outcome == "draw" for r in rs)
+        l_ = sum(r.outcome == "loss" for r in rs)
+        diff = [r.my_score - r.enemy_score for r in rs]
+        m, lo, hi = mean_ci(diff)
+        by_side = {side: {"episodes": sum(r.side == side for r in rs),
+                          "wins": sum(r.side == side and r.outcome == "win" for r in rs)} for side in ("red", "blue")}
+        rows.append({"opponent": opp, "episodes": n, "wins": w, "draws": d, "losses": l_,
+                     "win_rate": w / n if n else float("nan"), "win_rate_ci95": list(wilson(w, n)),
+                     "score_diff_mean": m, "score_diff_ci95": [lo, hi],
+                     "return_mean": float(np.mean([r.ret for r in rs])), "by_side": by_side})
+    n_all = len(results)
+    w_all = sum(r.outcome == "win" for r in results)
+    return {"kind": "match", "episodes": n_all, "rows": rows,
+            "total": {"episodes": n_all, "wins": w_all, "draws": sum(r.outcome == "draw" for r in results),
+                      "losses": sum(r.outcome == "loss" for r in results),
+                      "win_rate": w_all / n_all if n_all else float("nan"), "win_rate_ci95": list(wilson(w_all, n_all))}}
+
+
+def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str, Any] | None = None,
+             opponents: Sequence[str] | None = MATCH_OPPONENTS, episodes: int = 20, workers: int = 1,
+             seed: int = 2_000_000, progress: bool = True, policy: str = "greedy") -> dict[str, Any]:
+    """Play ``episodes`` per opponent (match envs; ``opponents`` ignored otherwise) with the
+    policy of ``checkpoint`` (a file, or a folder's newest checkpoint): ``"greedy"`` (argmax) or ``"sample"`` (draw from an actor-critic's
+    action distribution, seeded per episode); ``workers`` > 1 uses that many ``spawn`` processes.
+    Returns :func:`summarize`'s dict plus ``checkpoint``, ``env``, ``policy`` and per-episode
+    ``results``."""
+    if policy not in ("greedy", "sample"):
+        raise ZenrlError(f"policy must be 'greedy' or 'sample', got {policy!r}")
+    sample = policy == "sample"
+    checkpoint = str(resolve_checkpoint(checkpoint))  # once: a live run may write a newer one meanwhile
+    probe_policy, probe_env, cfg = load_policy_env(checkpoint, env_id, env_kwargs, sample=sample)
+    match = is_match_env(probe_env)
+    env_name = probe_env.spec.id if probe_env.spec else (env_id or cfg.env.id)
+    probe_env.close()
+    del probe_policy
+    opps = list(opponents) if match and opponents else None
+    if match and not opps:
+        raise ZenrlError("a match env needs at least one opponent (--opponents)")
+    jobs = make_jobs(episodes, opps, seed)
+    results: list[EpisodeResult] = []
+    bar = None
+    if progress:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        bar = Progress(TextColumn("[bold]evaluate"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.description}"), transient=False)
+    task = bar.add_task("", total=len(jobs)) if bar else None
+
+    def done(r: EpisodeResult) -> None:
+        results.append(r)
+        if bar is not None:
+            wins = sum(x.outcome == "win" for x in results)
+            bar.update(task, advance=1, description=f"wins {wins}/{len(results)}" if match else f"last return {r.ret:.1f}")
+
+    if bar is not None:
+        bar.start()
+    try:
+        if workers <= 1:
+            runner = EpisodeRunner(checkpoint, env_id, env_kwargs, opps, sample)
+            try:
+                for j in jobs:
+                    done(runner.run(j))
+            finally:
+                runner.close()
+        else:
+            ctx = mp.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_worker,
+                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample)) as pool:
+                for fut in as_completed([pool.submit(_run_job, j) for j in jobs]):
+                    done(fut.result())
+    finally:
+        if bar is not None:
+            bar.stop()
+    out = summarize(results, match)
+    out.update({"checkpoint": str(checkpoint), "env": env_name, "seed": seed, "policy": policy,
+                "results": [asdict(r) for r in sorted(results, key=lambda r: r.index)]})
+    return out
+
+
+def _fmt_ci(ci: Sequence[float], pct: bool = False) -> str:
+    lo, hi = ci
+    if any(math.isnan(v) for v in (lo, hi)):
+        return ""
+    return f"[{lo:.0%}, {hi:.0%}]" if pct else f"[{lo:+.2f}, {hi:+.2f}]"
+
+
+def render_table(summary: Mapping[str, Any]):
+    """A rich Table of :func:`evaluate`'s summary, narrow enough for an 80-column terminal
+    (each estimate shares its column with its 95% interval)."""
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=f"{summary.get('env', '')}  {Path(str(summary.get('checkpoint', ''))).name}", box=box.SIMPLE_HEAD)
+    if summary["kind"] == "return":
+        for c in ("episodes", "mean return [95% CI]", "std", "mean length"):
+            t.add_column(c, justify="right")
+        r = summary["rows"][0]
+        t.add_row(str(r["episodes"]), f"{r['return_mean']:.2f} {_fmt_ci(r['return_ci95'])}".strip(),
+                  f"{r['return_std']:.2f}", f"{r['length_mean']:.1f}")
+        return t
+    for c in ("opponent", "n", "W/D/L", "win rate [95% CI]", "score diff [95% CI]"):
+        t.add_column(c, justify="left" if c == "opponent" else "right", no_wrap=True)
+    for r in summary["rows"]:
+        t.add_row(r["opponent"], str(r["episodes"]), f"{r['wins']}/{r['draws']}/{r['losses']}",
+                  f"{r['win_rate']:.0%} {_fmt_ci(r['win_rate_ci95'], True)}",
+                  f"{r['score_diff_mean']:+.2f} {_fmt_ci(r['score_diff_ci95'])}".strip())
+    tot = summary["total"]
+    t.add_row("all", str(tot["episodes"]), f"{tot['wins']}/{tot['draws']}/{tot['losses']}",
+              f"{tot['win_rate']:.0%} {_fmt_ci(tot['win_rate_ci95'], True)}", "", style="bold")
+    return t
