@@ -155,7 +155,9 @@ class Launcher:
     def _spawn(self, c: Child, extra: list[str] | None = None) -> None:
         cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(self.run_dir / "config.yaml"),
                "--run-id", self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
-        env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})
+        # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
+        # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
+        env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
         if self.placement is not None and c.role in self.placement:
             env.update(self.placement[c.role].env())
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
