@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -24,32 +23,16 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
 from zenrl.common.config import RunConfig, SelfPlayConfig, config_from_dict
 from zenrl.common.errors import CheckpointError
 from zenrl.common.networks import ActorCritic, QNetwork, flat_obs, num_actions, obs_spec, sample_categorical
 
 log = logging.getLogger(__name__)
 
-_CKPT_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
-
-
 # --------------------------------------------------------------------------------------------
 # Reading checkpoints
 # --------------------------------------------------------------------------------------------
-def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The training-state dict of ``path`` (``torch.load(..., weights_only=True)`` on the CPU);
-    :class:`CheckpointError` if it is missing, unreadable or not a zenrl checkpoint."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
-    except Exception as e:  # torch raises many types for truncated/corrupt archives
-        raise CheckpointError(f"checkpoint {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
-    if not isinstance(state, dict) or "format" not in state or "config" not in state:
-        raise CheckpointError(f"checkpoint {str(path)!r} is not a zenrl training state")
-    return state
-
-
 def checkpoint_config(state: Mapping[str, Any]) -> RunConfig:
     """The run configuration saved in a checkpoint."""
     return config_from_dict(state["config"])
@@ -82,14 +65,6 @@ def build_network(state: Mapping[str, Any], observation_space: gym.Space, action
         raise CheckpointError(f"the checkpoint's network does not fit this env's spaces "
                               f"(obs {observation_space}, actions {action_space}): {e}") from None
     return net.eval()
-
-
-def list_checkpoint_files(directory: str | os.PathLike[str]) -> list[Path]:
-    """``ckpt-<updates>.pt`` files in ``directory``, oldest first (empty if none / no dir)."""
-    d = Path(directory)
-    if not d.is_dir():
-        return []
-    return sorted(p for p in d.iterdir() if _CKPT_NAME.match(p.name))
 
 
 # --------------------------------------------------------------------------------------------
@@ -196,7 +171,7 @@ class SnapshotLeague:
         if now < self._next_refresh:
             return False
         self._next_refresh = now + self.cfg.snapshot_interval_s
-        files = list_checkpoint_files(self.dir)
+        files = list_checkpoints(self.dir)
         if not files:
             if not self._warned:
                 log.info("self-play: no checkpoint in %s yet; scripted opponents only", self.dir)

@@ -1,41 +1,29 @@
-"""Checkpoints: one training state per file, written atomically (temp file + ``os.replace``),
-the newest K kept, loaded with ``torch.load(..., weights_only=True)``; a corrupt or truncated
-newest file is reported and skipped for the one before it."""
+"""Writing checkpoints: one training state per file, written atomically (temp file +
+``os.replace``), the newest K kept; and the weights-version high-water mark. Reading them (the
+newest readable one, a corrupt newest file skipped) is :mod:`zenrl.common.checkpoints`."""
 
 from __future__ import annotations
 
-import logging
 import os
-import re
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from zenrl.common.errors import CheckpointError
+from zenrl.common.checkpoints import checkpoint_name, list_checkpoints, load_latest, read_checkpoint
 
-log = logging.getLogger(__name__)
-
-_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
-
+__all__ = ["checkpoint_dir", "list_checkpoints", "load_latest", "read_checkpoint", "save_checkpoint",
+           "VersionReservation", "read_version_mark", "write_version_mark"]
 
 def checkpoint_dir(runs_dir: str | os.PathLike[str], run_id: str) -> Path:
     return Path(runs_dir) / run_id / "checkpoints"
-
-
-def list_checkpoints(directory: str | os.PathLike[str]) -> list[Path]:
-    """Checkpoint files, oldest first."""
-    d = Path(directory)
-    if not d.is_dir():
-        return []
-    return sorted(p for p in d.iterdir() if _NAME.match(p.name))
 
 
 def save_checkpoint(directory: str | os.PathLike[str], state: dict[str, Any], step: int, keep: int) -> Path:
     """Write ``state`` as ``ckpt-<step>.pt`` atomically and prune to the newest ``keep``."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    path = d / f"ckpt-{int(step):012d}.pt"
+    path = d / checkpoint_name(step)
     tmp = d / f".{path.name}.tmp-{os.getpid()}"
     with open(tmp, "wb") as f:
         torch.save(state, f)
@@ -45,31 +33,6 @@ def save_checkpoint(directory: str | os.PathLike[str], state: dict[str, Any], st
     for old in list_checkpoints(d)[:-keep]:
         old.unlink(missing_ok=True)
     return path
-
-
-def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
-    except Exception as e:  # torch raises many types for truncated/corrupt archives
-        raise CheckpointError(f"checkpoint {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
-    if not isinstance(state, dict) or "format" not in state:
-        raise CheckpointError(f"checkpoint {str(path)!r} is not a zenrl training state")
-    return state
-
-
-def load_latest(directory: str | os.PathLike[str]) -> tuple[dict[str, Any], Path]:
-    """The newest readable checkpoint in ``directory``; raise :class:`CheckpointError` if none."""
-    files = list_checkpoints(directory)
-    if not files:
-        raise CheckpointError(f"no checkpoint in {str(directory)!r}")
-    for p in reversed(files):
-        try:
-            return load_checkpoint(p), p
-        except CheckpointError as e:
-            log.error("%s; trying the previous one", e)
-    raise CheckpointError(f"no readable checkpoint in {str(directory)!r} ({len(files)} corrupt)")
 
 
 VERSION_MARK = "weights_version"

@@ -8,7 +8,7 @@ import torch
 from zenrl.common.config import load_config
 from zenrl.common.errors import CheckpointError
 from zenrl.common.specs import ArraySpec
-from zenrl.learner.checkpoint import (list_checkpoints, load_checkpoint, load_latest, read_version_mark,
+from zenrl.learner.checkpoint import (list_checkpoints, read_checkpoint, load_latest, read_version_mark,
                                       save_checkpoint, write_version_mark)
 from zenrl.learner.dqn import DQNLearner
 from zenrl.learner.service import check_resume_compatible
@@ -38,7 +38,7 @@ def test_resume_next_update_is_bitwise_identical(tmp_path):
     path = save_checkpoint(tmp_path, state, a.updates, keep=3)
 
     b = _learner(cfg)
-    loaded = load_checkpoint(path)
+    loaded = read_checkpoint(path)
     b.load_state_dict(loaded["learner"])
     assert b.updates == 7 and b.beta() == a.beta()
     for i in range(7, 10):  # crosses a target-network update (period 3)
@@ -53,7 +53,7 @@ def test_resume_next_update_is_bitwise_identical(tmp_path):
 
 def test_keep_k_and_corrupt_newest_is_skipped(tmp_path, caplog):
     for step in (10, 20, 30, 40):
-        save_checkpoint(tmp_path, {"format": 1, "step": step}, step, keep=3)
+        save_checkpoint(tmp_path, {"format": 1, "config": {}, "step": step}, step, keep=3)
     files = list_checkpoints(tmp_path)
     assert [f.name for f in files] == ["ckpt-000000000020.pt", "ckpt-000000000030.pt", "ckpt-000000000040.pt"]
     assert not list(tmp_path.glob(".*tmp*"))
@@ -67,7 +67,7 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path):
     with pytest.raises(CheckpointError, match="no checkpoint"):
         load_latest(tmp_path / "nothing")
     with pytest.raises(CheckpointError, match="does not exist"):
-        load_checkpoint(tmp_path / "ckpt-000000000001.pt")
+        read_checkpoint(tmp_path / "ckpt-000000000001.pt")
 
 
 class Evil:
@@ -78,7 +78,7 @@ def test_pickled_objects_are_refused(tmp_path):
     p = tmp_path / "ckpt-000000000001.pt"
     torch.save({"format": 1, "x": Evil()}, p)
     with pytest.raises(CheckpointError, match="unreadable"):
-        load_checkpoint(p)
+        read_checkpoint(p)
 
 
 def test_resume_compatibility():

@@ -11,7 +11,7 @@ from zenrl.common.config import LearnerConfig, NetworkConfig, load_config
 from zenrl.common.networks import ActorCritic, QNetwork, params_to_arrays
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.a3c import APPLIED, GradientApplier
-from zenrl.learner.checkpoint import load_checkpoint, save_checkpoint
+from zenrl.learner.checkpoint import read_checkpoint, save_checkpoint
 from zenrl.learner.dqn import DQNLearner
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -63,7 +63,7 @@ def test_cuda_checkpoint_resumes_on_cpu_and_cuda(tmp_path):
     for i in range(5):
         a.update(a.batch_to_tensors(*_batch(i)))
     path = save_checkpoint(tmp_path, {"format": 1, "learner": a.state_dict()}, a.updates, keep=2)
-    state = load_checkpoint(path)  # map_location cpu, weights_only
+    state = read_checkpoint(path)  # map_location cpu, weights_only
     assert all(not v.is_cuda for v in state["learner"]["online"].values())
     for dev in (CUDA, CPU):
         b = DQNLearner(SPEC, 2, cfg.network, cfg.learner, dev)

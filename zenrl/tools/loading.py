@@ -17,7 +17,8 @@ from zenrl.common.config import EnvConfig, RunConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
-from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config, list_checkpoint_files, read_checkpoint
+from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
+from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
     if not p.exists():
         raise ZenrlError(f"--checkpoint {str(p)!r} does not exist (give a ckpt-*.pt file, a run folder or its checkpoints folder)")
     folder = p / "checkpoints" if (p / "checkpoints").is_dir() else p
-    found = list_checkpoint_files(folder)
+    found = list_checkpoints(folder)
     if not found:
         raise ZenrlError(f"--checkpoint {str(p)!r}: no ckpt-*.pt checkpoint in {str(folder)!r}")
     log.info("newest checkpoint of %s: %s", p, found[-1])
