@@ -261,6 +261,9 @@ class Message:
     #: field name -> how to check/convert it: "int", "uint", "float", "str", "name", "bool",
     #: "arrays", "arrays?" (optional), "array", "array?", "map" (str -> scalar), "floats"
     SCHEMA: ClassVar[dict[str, str]] = {}
+    #: optional fields left out of the envelope when None (added to a message type later, so
+    #: peers that do not use them see the same bytes as before)
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset()
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
@@ -272,6 +275,8 @@ class Message:
         env: dict[str, Any] = {"v": PROTOCOL_VERSION, "t": self.TYPE}
         for name, kind in _encode_plan(type(self)):
             v = getattr(self, name)
+            if v is None and name in self.OMIT_NONE:
+                continue
             if v is None or kind == 0:
                 env[name] = v
             elif kind == 2:
@@ -416,21 +421,44 @@ def _require_finite(name: str, a: np.ndarray, nonneg: bool = False) -> None:
         raise ProtocolError(name, "contains negative values", "negative")
 
 
+def frame_table(field: str) -> str:
+    """Frame table a frame-id field reads: ``next_obs/X`` and ``obs/X`` both read ``obs/X``."""
+    return field[5:] if field.startswith("next_") else field
+
+
 @dataclass(frozen=True)
 class TransitionBatch(Message):
     """A chunk of B transitions from one actor (Ape-X). ``data``: flat ``{name: array[B, ...]}``
     (for Ape-X: ``obs/*``, ``action``, ``reward`` (n-step discounted sum), ``next_obs/*``,
     ``terminated``, ``truncated``, ``n`` (steps actually summed)); ``priorities``: float32[B] or
-    nil (then the replay uses its running max). Float arrays must be finite."""
+    nil (then the replay uses its running max). Float arrays must be finite.
+
+    Frame mode (image envs; both nil otherwise): ``frames`` ``{obs field: array[F, ...]}`` are
+    the observation frames this actor records for the first time, with ids ``frame_base ..
+    frame_base + F - 1`` (ids count up over the actor's life; every table has F frames, one per
+    recorded observation; F may be 0, then ``frame_base`` is the next id). Each data field whose
+    :func:`frame_table` is a key of ``frames`` holds frame ids instead of arrays: integer ``[B]``
+    (the item is one frame) or ``[B, k]`` (a stack of k frames, oldest first), naming frames of
+    this chunk or of the same actor's earlier chunks."""
 
     TYPE: ClassVar[str] = "transitions"
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
-                                        "data": "arrays", "priorities": "array?"}
+                                        "data": "arrays", "priorities": "array?", "frames": "arrays?",
+                                        "frame_base": "uint?"}
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"frames", "frame_base"})
     actor_id: str
     policy_version: int
     seq: int
     data: dict[str, np.ndarray]
     priorities: np.ndarray | None = None
+    frames: dict[str, np.ndarray] | None = None
+    frame_base: int | None = None
+
+    def frame_refs(self) -> dict[str, np.ndarray]:
+        """The data fields that are frame ids (empty outside frame mode)."""
+        if self.frames is None:
+            return {}
+        return {k: v for k, v in self.data.items() if frame_table(k) in self.frames}
 
     @property
     def batch_size(self) -> int:
@@ -452,6 +480,28 @@ class TransitionBatch(Message):
         if self.priorities is not None:
             _require_1d("priorities", self.priorities, "f", b)
             _require_finite("priorities", self.priorities, nonneg=True)
+        if self.frames is not None or self.frame_base is not None:
+            self._validate_frames()
+
+    def _validate_frames(self) -> None:
+        if self.frames is None or self.frame_base is None:
+            raise ProtocolError("frames", "frames and frame_base come together", "field")
+        n_f = None
+        for k, a in self.frames.items():
+            if a.ndim == 0 or (n_f is not None and a.shape[0] != n_f):
+                raise ProtocolError(f"frames.{k}", f"must hold one frame per id ({n_f} in the other tables)", "batch")
+            n_f = a.shape[0]
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(f"frames.{k}", "contains NaN or Inf", "nonfinite")
+        refs = self.frame_refs()
+        if not refs:
+            raise ProtocolError("frames", "no data field names a frame table", "field")
+        end = self.frame_base + n_f
+        for k, ids in refs.items():
+            if ids.dtype.kind not in "iu" or ids.ndim not in (1, 2):
+                raise ProtocolError(f"data.{k}", f"frame ids must be integer [B] or [B, k], got {ids.dtype.name}{list(ids.shape)}", "dtype")
+            if ids.size and (ids.min() < 0 or ids.max() >= end):
+                raise ProtocolError(f"data.{k}", f"frame ids must be in [0, {end}) (frame_base + frames)", "field")
 
 
 @dataclass(frozen=True)
