@@ -121,7 +121,8 @@ class ApexActor:
                                    block_steps=chunk_steps * -(-MIN_BLOCK_STEPS // chunk_steps),
                                    frame_stack=acfg.frame_stack if acfg.frames and image else None)
         self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s,
-                                        cfg.transport.max_message_bytes, acfg.backlog_chunks)
+                                        cfg.transport.max_message_bytes, acfg.backlog_chunks,
+                                        None if acfg.compress == "none" else acfg.compress)
         self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
         self.env_steps = 0
         self._ep_returns: list[float] = []

@@ -95,6 +95,7 @@ class ActorConfig(_Section):
     max_steps_per_s: Optional[float] = Field(None, gt=0, description="Cap on each actor's env steps per second (all its envs), leaving CPU to the learner on small machines; none by default.")
     frames: bool = Field(True, description="Image envs (any uint8 observation of 2+ dims): send each observation frame once with frame ids (docs/protocol.md) instead of obs/next_obs arrays; false sends full arrays.")
     frame_stack: int = Field(0, ge=0, description="Frame mode: observations are stacks of this many frames on their first axis (gymnasium FrameStackObservation), shared between neighbouring stacks; 0: not stacked.")
+    compress: Literal["none", "lz4"] = Field("none", description="Compress the uint8 arrays (image frames) of the chunks sent to the replay: lz4 is ~GB/s and shrinks rendered frames many times; random-looking images do not shrink.")
     backlog_chunks: int = Field(512, ge=0, description="Chunks kept while no replay is reachable (resent when it is back); older ones are dropped and counted.")
 
 

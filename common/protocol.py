@@ -23,6 +23,7 @@ import re
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Mapping
 
+import lz4.block
 import msgpack
 import numpy as np
 
@@ -170,10 +171,25 @@ _DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
 _WIRE_NAMES = {dt.newbyteorder("<"): name for name, dt in _DTYPES.items()}
 
 
-def encode_array(a: np.ndarray) -> dict[str, Any]:
+#: Array codecs a sender may declare in the array map (uint8 arrays only).
+CODECS = ("lz4",)
+#: uint8 arrays smaller than this travel raw even when compression is asked for.
+MIN_COMPRESS_BYTES = 4096
+#: The lz4 block format cannot expand data by more than ~255x: a declared size beyond this
+#: factor of the compressed bytes is a lie (a decompression bomb) and is refused unread.
+LZ4_MAX_RATIO = 255
+
+
+def encode_array(a: np.ndarray, codec: str | None = None) -> dict[str, Any]:
     """``np.ndarray`` -> wire map; one copy at most (only if ``a`` is not C-contiguous or is
-    big-endian)."""
+    big-endian). ``codec`` ("lz4"): uint8 arrays of at least MIN_COMPRESS_BYTES are compressed
+    (lz4 block format, the decompressed byte count declared as ``size``)."""
     a = np.ascontiguousarray(a)
+    if codec is not None and a.dtype == np.uint8 and a.nbytes >= MIN_COMPRESS_BYTES:
+        if codec not in CODECS:
+            raise ProtocolError("codec", f"{codec!r} is not one of {list(CODECS)}", "field")
+        return {"dtype": "uint8", "shape": list(a.shape), "codec": codec, "size": a.nbytes,
+                "data": lz4.block.compress(memoryview(a).cast("B"), store_size=False)}
     name = _WIRE_NAMES.get(a.dtype)
     if name is None:
         if a.dtype.byteorder == ">":
@@ -186,12 +202,15 @@ def encode_array(a: np.ndarray) -> dict[str, Any]:
 
 
 _ARRAY_KEYS = {"dtype", "shape", "data"}
+_PACKED_KEYS = {"dtype", "shape", "data", "codec", "size"}
 
 
 def decode_array(name: str, m: Any) -> np.ndarray:
-    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy)."""
+    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed)."""
     if type(m) is not dict or m.keys() != _ARRAY_KEYS:
-        raise ProtocolError(name, "must be a map with exactly dtype, shape, data", "array")
+        if type(m) is dict and m.keys() == _PACKED_KEYS:
+            return _decode_packed(name, m)
+        raise ProtocolError(name, "must be a map with exactly dtype, shape, data (and codec, size when compressed)", "array")
     dtype, shape, data = m["dtype"], m["shape"], m["data"]
     dt = _DTYPES.get(dtype) if type(dtype) is str else None
     if dt is None:
@@ -210,6 +229,32 @@ def decode_array(name: str, m: Any) -> np.ndarray:
     return np.frombuffer(data, dtype=dt).reshape(shape)
 
 
+def _decode_packed(name: str, m: dict[str, Any]) -> np.ndarray:
+    """A compressed array: every declared number is checked before a byte is decompressed."""
+    codec, size, dtype, shape, data = m["codec"], m["size"], m["dtype"], m["shape"], m["data"]
+    if codec not in CODECS:
+        raise ProtocolError(f"{name}.codec", f"{codec!r} is not one of {list(CODECS)}", "codec")
+    if dtype != "uint8":
+        raise ProtocolError(f"{name}.dtype", f"compressed arrays must be uint8, got {dtype!r}", "dtype")
+    if type(shape) is not list or len(shape) > MAX_NDIM or any(type(d) is not int or d < 0 for d in shape):
+        raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+    if not isinstance(data, (bytes, bytearray)):
+        raise ProtocolError(f"{name}.data", "must be bin", "array")
+    expected = math.prod(shape)
+    if type(size) is not int or size != expected:
+        raise ProtocolError(f"{name}.size", f"declares {size!r} decompressed bytes; uint8 shape {shape} needs {expected}", "shape")
+    if size > LZ4_MAX_RATIO * len(data) + 64:
+        raise ProtocolError(f"{name}.size", f"declares {size} bytes from {len(data)} compressed bytes, more than "
+                            f"{codec} can expand; refused unread", "bomb")
+    try:
+        raw = lz4.block.decompress(data, uncompressed_size=size)
+    except lz4.block.LZ4BlockError:
+        raise ProtocolError(f"{name}.data", f"is not valid {codec} data for {size} bytes", "codec") from None
+    if len(raw) != size:
+        raise ProtocolError(f"{name}.data", f"decompresses to {len(raw)} bytes, declared {size}", "codec")
+    return np.frombuffer(raw, dtype=np.uint8).reshape(shape)
+
+
 _good_field_names: set[str] = set()
 
 
@@ -222,8 +267,8 @@ def _check_field_name(name: str, k: Any) -> None:
         _good_field_names.add(k)
 
 
-def encode_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
-    return {k: encode_array(np.asarray(v)) for k, v in arrays.items()}
+def encode_arrays(arrays: Mapping[str, np.ndarray], codec: str | None = None) -> dict[str, Any]:
+    return {k: encode_array(np.asarray(v), codec) for k, v in arrays.items()}
 
 
 def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int | None = None) -> dict[str, np.ndarray]:
@@ -271,7 +316,8 @@ class Message:
             _REGISTRY[cls.TYPE] = cls
 
     # -- encode ---------------------------------------------------------------------------
-    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, codec: str | None = None) -> bytes:
+        """``codec`` ("lz4" or None): compress the uint8 arrays of the array maps."""
         env: dict[str, Any] = {"v": PROTOCOL_VERSION, "t": self.TYPE}
         for name, kind in _encode_plan(type(self)):
             v = getattr(self, name)
@@ -280,7 +326,7 @@ class Message:
             if v is None or kind == 0:
                 env[name] = v
             elif kind == 2:
-                env[name] = encode_arrays(v)
+                env[name] = encode_arrays(v, codec)
             else:
                 env[name] = encode_array(np.asarray(v))
         out = msgpack.packb(env, use_bin_type=True)

@@ -45,8 +45,11 @@ class ZenohReplayClient:
     queries ``replay/sample``, ``update_priorities`` publishes a :class:`PriorityUpdate`."""
 
     def __init__(self, node: Node, keys: P.Keys, actor_id: str = "client", timeout_s: float = 5.0,
-                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, backlog_chunks: int = 512) -> None:
+                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, backlog_chunks: int = 512,
+                 codec: str | None = None) -> None:
         self.node = node
+        #: "lz4": inserted chunks carry their uint8 arrays compressed (see docs/protocol.md)
+        self.codec = codec
         self.keys = keys
         self.actor_id = P.check_name("actor_id", actor_id)
         self.timeout_s = timeout_s
@@ -79,7 +82,7 @@ class ZenohReplayClient:
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
                                 data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32),
                                 frames=None if frames is None else dict(frames), frame_base=frame_base)
-        payload = msg.encode(self.max_bytes)
+        payload = msg.encode(self.max_bytes, self.codec)
         if not self._tx.matching_status.matching:
             # nobody would receive it (replay down, or the router restarting): hold it
             self._backlog.append(payload)
