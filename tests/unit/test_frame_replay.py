@@ -215,7 +215,7 @@ def check_equal(store: FrameReplay, ref: Reference, rng: np.random.Generator) ->
             np.testing.assert_array_equal(s.data[f][i], v, err_msg=f"key {key} field {f}")
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**31), n_actors=st.integers(1, 3), E=st.integers(1, 3), n=st.integers(1, 4),
        k=st.sampled_from([0, 1, 4]), chunk_steps=st.integers(1, 5), max_len=st.integers(1, 12),
        capacity=st.integers(4, 60), fpi=st.sampled_from([0.6, 1.0, 1.5, 3.0]), lose=st.sampled_from([0.0, 0.2]))
