@@ -151,7 +151,7 @@ class ApexActor:
         frames, base = block.frames, block.frame_base
         for i in range(0, len(block), cs):
             self.replay.insert({k: v[i:i + cs] for k, v in block.data.items()}, block.priorities[i:i + cs],
-                               self.weights.version, frames, base)
+                               self.weights.version, frames, None if frames is None else base)
             if frames is not None:  # the block's frames go with its first chunk
                 base += len(next(iter(frames.values())))
                 frames = {k: v[:0] for k, v in frames.items()}
