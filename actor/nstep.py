@@ -51,6 +51,10 @@ class Block:
     data: dict[str, np.ndarray]
     priorities: np.ndarray
     env: np.ndarray
+    #: frame mode: the frames first recorded since the last block (``{obs field: [F, ...]}``),
+    #: ids ``frame_base .. frame_base + F - 1``; the obs fields in ``data`` are then frame ids
+    frames: dict[str, np.ndarray] | None = None
+    frame_base: int = 0
 
     def __len__(self) -> int:
         return int(self.env.shape[0])
@@ -64,7 +68,8 @@ class NStepBlocks:
     after them are known) :meth:`add` returns a :class:`Block` of ``block_steps * E``
     transitions, otherwise None."""
 
-    def __init__(self, num_envs: int, n_step: int, gamma: float, block_steps: int) -> None:
+    def __init__(self, num_envs: int, n_step: int, gamma: float, block_steps: int,
+                 frame_stack: int | None = None) -> None:
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1, got {n_step}")
         if block_steps < 1:
@@ -82,6 +87,17 @@ class NStepBlocks:
         self._trunc = np.zeros((R, E), bool)
         self._disc = gamma ** np.arange(n_step + 1, dtype=np.float64)
         self._idx: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # frame mode (image envs): observations leave as frame ids, each frame sent once
+        if frame_stack is not None and frame_stack < 0:
+            raise ValueError(f"frame_stack must be None or >= 0, got {frame_stack}")
+        self.frame_stack = frame_stack
+        kk = max(frame_stack or 0, 1)
+        self._fid = np.zeros((R, E, kk), np.int64)     # frame ids of s_t
+        self._ffid = np.zeros((R, E, kk), np.int64)    # frame ids of the final observation
+        self._prev: list[tuple[dict[str, np.ndarray], np.ndarray] | None] = [None] * E
+        self._next_id = 0
+        self._sent_id = 0
+        self._pending: list[dict[str, np.ndarray]] = []
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray,
@@ -98,6 +114,9 @@ class NStepBlocks:
             self._q = np.zeros((self.rows,) + q.shape, np.float32)
         for k, v in obs.items():
             self._obs[k][t] = v
+        if self.frame_stack is not None:
+            for e in range(self.E):
+                self._fid[t, e] = self._frame_ids(e, obs)
         self._q[t] = q
         self._act[t] = actions
         self._rew[t] = rewards
@@ -107,6 +126,9 @@ class NStepBlocks:
         if idx.size:
             for k, v in next_obs.items():
                 self._final[k][t, idx] = v[idx]
+            if self.frame_stack is not None:
+                for e in idx.tolist():
+                    self._ffid[t, e] = self._frame_ids(e, next_obs)
         self.t += 1
         if self.t < self.rows:
             return None
@@ -114,6 +136,48 @@ class NStepBlocks:
         block = self._emit(self.K, value_fn)
         self._shift(self.K)
         return block
+
+    def _frame_ids(self, e: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Frame ids of env ``e``'s observation ``obs[.][e]``, the next one of its sequence.
+        Unstacked: one new frame. Stacked (``[k, ...]`` per field, oldest first): slot i reuses
+        the id of the previous observation's slot i+1, or of its own slot i+1, where every
+        field's content is equal (a continuing episode, or reset padding); only slots that
+        match nothing are new frames. Equal content is what makes a reuse correct, so this
+        needs no knowledge of episode boundaries."""
+        k = self.frame_stack
+        cur = {f: v[e] for f, v in obs.items()}
+        if not k:
+            self._pending.append({f: v.copy() for f, v in cur.items()})
+            self._next_id += 1
+            return np.array([self._next_id - 1])
+        prev = self._prev[e]
+        ids = np.empty(k, np.int64)
+        for i in range(k - 1, -1, -1):
+            if i < k - 1:
+                if prev is not None and all(np.array_equal(v[i], prev[0][f][i + 1]) for f, v in cur.items()):
+                    ids[i] = prev[1][i + 1]
+                    continue
+                if all(np.array_equal(v[i], v[i + 1]) for v in cur.values()):
+                    ids[i] = ids[i + 1]
+                    continue
+            self._pending.append({f: v[i].copy() for f, v in cur.items()})
+            ids[i] = self._next_id
+            self._next_id += 1
+        self._prev[e] = ({f: v.copy() for f, v in cur.items()}, ids)
+        return ids
+
+    def _take_frames(self) -> tuple[dict[str, np.ndarray] | None, int]:
+        if self.frame_stack is None:
+            return None, 0
+        base = self._sent_id
+        if self._pending:
+            frames = {f: np.stack([p[f] for p in self._pending]) for f in self._pending[0]}
+        else:
+            frames = {k: np.zeros((0, *v.shape[2 + (1 if self.frame_stack else 0):]), v.dtype)
+                      for k, v in self._obs.items()}
+        self._pending = []
+        self._sent_id = self._next_id
+        return frames, base
 
     def flush(self, value_fn: ValueFn) -> Block | None:
         """Emit every start whose n steps and the observation after them are recorded (at
@@ -131,7 +195,7 @@ class NStepBlocks:
         for arrs in (self._obs, self._final):
             for a in arrs.values():
                 a[:left] = a[keep]
-        for a in (self._act, self._rew, self._q, self._term, self._trunc):
+        for a in (self._act, self._rew, self._q, self._term, self._trunc, self._fid, self._ffid):
             a[:left] = a[keep]
         self.t = left
 
@@ -169,6 +233,8 @@ class NStepBlocks:
         nxt_row = np.where(flat_ended, end_row, j + n)
         data: dict[str, np.ndarray] = {}
         e_idx = flat_ended.nonzero()[0]
+        if self.frame_stack is not None:
+            return self._emit_frames(K, R, m, term, trunc, nxt_row, env, e_idx, flat_ended, value_fn)
         for key, buf in self._obs.items():
             data[key] = buf[:K].reshape((K * E,) + buf.shape[2:]).copy()  # the rows are reused
             nxt = buf[nxt_row, env]
@@ -192,3 +258,36 @@ class NStepBlocks:
         q_sa = self._q[:K].reshape(-1).take(np.arange(0, K * E * A, A) + self._act[:K].ravel())
         prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
         return Block(data, prio, env.copy())
+
+    def _emit_frames(self, K: int, R: np.ndarray, m: np.ndarray, term: np.ndarray, trunc: np.ndarray,
+                     nxt_row: np.ndarray, env: np.ndarray, e_idx: np.ndarray, flat_ended: np.ndarray,
+                     value_fn: ValueFn) -> Block:
+        """The frame-mode tail of :meth:`_emit`: obs fields as frame ids (``int64[B]``, or
+        ``int64[B, k]`` for stacks), the block's new frames alongside."""
+        E, kk = self.E, self._fid.shape[2]
+        obs_ids = self._fid[:K].reshape(K * E, kk)
+        nxt_ids = self._fid[nxt_row, env]
+        if e_idx.size:
+            nxt_ids[e_idx] = self._ffid[nxt_row[e_idx], env[e_idx]]
+        squeeze = not self.frame_stack
+        data: dict[str, np.ndarray] = {}
+        for key in self._obs:
+            data[key] = obs_ids[:, 0].copy() if squeeze else obs_ids.copy()
+            data["next_" + key] = nxt_ids[:, 0].copy() if squeeze else nxt_ids
+        data["action"] = self._act[:K].ravel().copy()
+        data["reward"] = R.ravel().astype(np.float32)
+        term_f, trunc_f = term.ravel(), trunc.ravel()
+        data["terminated"] = term_f
+        data["truncated"] = trunc_f
+        m_f = m.ravel()
+        data["n"] = m_f.astype(np.uint8)
+        A = self._q.shape[2]
+        boot = _max_last(self._q).ravel().take(nxt_row * E + env).astype(np.float64)
+        boot[flat_ended] = 0.0
+        tr_idx = trunc_f.nonzero()[0]
+        if tr_idx.size:
+            boot[tr_idx] = value_fn({k: buf[nxt_row[tr_idx], env[tr_idx]] for k, buf in self._final.items()})
+        q_sa = self._q[:K].reshape(-1).take(np.arange(0, K * E * A, A) + self._act[:K].ravel())
+        prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
+        frames, base = self._take_frames()
+        return Block(data, prio, env.copy(), frames, base)

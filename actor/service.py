@@ -116,10 +116,13 @@ class ApexActor:
         # least MIN_BLOCK_STEPS steps (the per-block arithmetic is then spread over more steps)
         chunk_steps = -(-acfg.chunk_size // acfg.envs_per_actor)
         self._chunk_len = chunk_steps * acfg.envs_per_actor
+        image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in self.spec.values())
         self.builder = NStepBlocks(acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma,
-                                   block_steps=chunk_steps * -(-MIN_BLOCK_STEPS // chunk_steps))
+                                   block_steps=chunk_steps * -(-MIN_BLOCK_STEPS // chunk_steps),
+                                   frame_stack=acfg.frame_stack if acfg.frames and image else None)
         self.replay = ZenohReplayClient(node, self.keys, actor_id, cfg.transport.query_timeout_s,
-                                        cfg.transport.max_message_bytes, acfg.backlog_chunks)
+                                        cfg.transport.max_message_bytes, acfg.backlog_chunks,
+                                        None if acfg.compress == "none" else acfg.compress)
         self.weights = WeightsFollower(node, self.keys, self.net, cfg.transport.max_message_bytes)
         self.env_steps = 0
         self._ep_returns: list[float] = []
@@ -145,9 +148,13 @@ class ApexActor:
         if block is None or len(block) == 0:
             return
         cs = self._chunk_len
+        frames, base = block.frames, block.frame_base
         for i in range(0, len(block), cs):
             self.replay.insert({k: v[i:i + cs] for k, v in block.data.items()}, block.priorities[i:i + cs],
-                               self.weights.version)
+                               self.weights.version, frames, None if frames is None else base)
+            if frames is not None:  # the block's frames go with its first chunk
+                base += len(next(iter(frames.values())))
+                frames = {k: v[:0] for k, v in frames.items()}
         self.sent_transitions += len(block)
 
     # -- main loop ----------------------------------------------------------------------------

@@ -7,7 +7,11 @@ Measures, per case:
                   512 sampled items with fresh priorities.
 
 Cases: a 1M-capacity replay of CartPole-sized transitions and a 50k-capacity replay of
-84x84x4 uint8 frames (obs and next_obs stored separately in both libraries). Both
+84x84x4 uint8 frames (obs and next_obs stored separately in both libraries). Then frames stored
+once: a 50k-capacity FrameReplay of an Atari-like stream (4-frame stacks of 84x84 frames,
+episodes of 100-400 steps) against ``cpprb.PrioritizedReplayBuffer(next_of="obs",
+stack_compress="obs")`` filled with the same episodes (sample+update batches/s, and the bytes per
+transition vs naive obs/next_obs storage), plus the Burger War camera's bytes per transition. Both
 replays are prefilled to the same size with the same alpha, then timed in interleaved rounds
 (ours, peer, ours, peer, ...) and the median round is reported, which keeps the comparison
 fair on a shared, noisy machine.
@@ -224,6 +228,126 @@ def run_case(name: str, spec: dict[str, ArraySpec], capacity: int, chunk_size: i
     return res
 
 
+# ------------------------------------------------------------------ frames stored once
+STACK = 4
+
+
+def image_stream(capacity: int, seed: int = 0):
+    """Episodes (lengths 100-400) of an Atari-like stream: per episode its L + 1 frames (84x84
+    uint8, from a pool: content does not matter to either store), the obs and next_obs stacks of
+    its L transitions as frame ids (reset padding repeats the first frame), and n = 1."""
+    rng = np.random.default_rng(seed)
+    pool = rng.integers(0, 256, size=(256, 84, 84), dtype=np.uint8)
+    total = 0
+    fid = 0
+    while total < capacity:
+        L = int(rng.integers(100, 401))
+        frames = pool[(np.arange(fid, fid + L + 1)) % 256]
+        t = np.arange(L + 1)
+        stack = np.maximum(t[:, None] + np.arange(-STACK + 1, 1)[None, :], 0)  # [L+1, 4] local ids
+        batch = {
+            "action": rng.integers(0, 6, L).astype(np.int64),
+            "reward": rng.standard_normal(L).astype(np.float32),
+            "terminated": np.arange(L) == L - 1,
+            "n": np.ones(L, np.uint8),
+        }
+        yield fid, frames, stack[:-1], stack[1:], batch, rng.random(L) * 2.0
+        fid += L + 1
+        total += L
+
+
+class OursFrames:
+    name = "zenrl"
+
+    def __init__(self, capacity: int) -> None:
+        from zenrl.replay.frames import FrameReplay
+
+        item = {"action": ArraySpec((), "int64"), "reward": ArraySpec((), "float32"),
+                "terminated": ArraySpec((), "bool"), "n": ArraySpec((), "uint8")}
+        self.rb = FrameReplay(item, {"obs": ArraySpec((84, 84), "uint8")}, {"obs": STACK, "next_obs": STACK},
+                              capacity, frames_per_item=1.05, alpha=ALPHA, seed=0)
+        self.rng = np.random.default_rng(1)
+
+    def add_episode(self, fid, frames, obs_ids, next_ids, batch, prio) -> None:
+        self.rb.insert("a0", fid, {"obs": frames}, batch, {"obs": obs_ids + fid, "next_obs": next_ids + fid}, prio)
+
+    def sample_update(self, new_prio: np.ndarray) -> None:
+        s = self.rb.sample(BATCH, BETA, rng=self.rng)
+        self.rb.update_priorities(s.keys, new_prio)
+
+
+class CpprbFrames:
+    name = "cpprb"
+
+    def __init__(self, capacity: int) -> None:
+        from cpprb import PrioritizedReplayBuffer
+
+        env = {"obs": {"shape": (84, 84, STACK), "dtype": np.uint8}, "action": {"dtype": np.int64},
+               "reward": {"dtype": np.float32}, "terminated": {"dtype": np.bool_}, "n": {"dtype": np.uint8}}
+        self.rb = PrioritizedReplayBuffer(capacity, env, alpha=ALPHA, next_of="obs", stack_compress="obs")
+
+    def add_episode(self, fid, frames, obs_ids, next_ids, batch, prio) -> None:
+        # cpprb stacks on the last axis: [L, 84, 84, 4]
+        obs = np.ascontiguousarray(np.moveaxis(frames[obs_ids], 1, -1))
+        nxt = np.ascontiguousarray(np.moveaxis(frames[next_ids], 1, -1))
+        self.rb.add(obs=obs, next_obs=nxt, **batch, priorities=prio)
+        self.rb.on_episode_end()
+
+    def sample_update(self, new_prio: np.ndarray) -> None:
+        s = self.rb.sample(BATCH, beta=BETA)
+        self.rb.update_priorities(s["indexes"], new_prio)
+
+
+def burgerwar_bytes() -> dict[str, Any]:
+    """Bytes per transition slot for the Burger War camera env (zenrl/BurgerWarImage-v0, 64x64x3
+    plus its vector observations): full obs/next_obs (InMemoryReplay) vs frames once."""
+    from zenrl.replay.frames import FrameReplay
+
+    obs = {"obs/game": ArraySpec((4,), "float32"), "obs/image": ArraySpec((64, 64, 3), "uint8"),
+           "obs/lidar": ArraySpec((360,), "float32"), "obs/mask": ArraySpec((18,), "float32"),
+           "obs/pose": ArraySpec((4,), "float32")}
+    cols = {"action": ArraySpec((), "int64"), "reward": ArraySpec((), "float32"), "terminated": ArraySpec((), "bool"),
+            "truncated": ArraySpec((), "bool"), "n": ArraySpec((), "uint8"), "meta/policy_version": ArraySpec((), "int64")}
+    naive = InMemoryReplay({**obs, **{"next_" + k: v for k, v in obs.items()}, **cols}, 1000)
+    framed = FrameReplay(cols, obs, {**{k: 0 for k in obs}, **{"next_" + k: 0 for k in obs}}, 1000,
+                         frames_per_item=1.05)
+    return {"naive_bytes_per_item": naive.bytes_per_item, "frames_bytes_per_item": framed.bytes_per_item,
+            "ratio": framed.bytes_per_item / naive.bytes_per_item, "frames_per_item": 1.05}
+
+
+def run_image_case(capacity: int, su_iters: int, rounds: int, peer: bool) -> dict[str, Any]:
+    impls: list[Any] = [OursFrames(capacity)] + ([CpprbFrames(capacity)] if peer else [])
+    setup_s = {}
+    for impl in impls:
+        t0 = time.perf_counter()
+        for ep in image_stream(capacity):
+            impl.add_episode(*ep)
+        setup_s[impl.name] = round(time.perf_counter() - t0, 3)
+        log(f"[frames_{capacity}] {impl.name}: filled in {setup_s[impl.name]:.2f}s")
+    ours = impls[0].rb
+    naive = InMemoryReplay(atari_spec(), 10).bytes_per_item
+    rng = np.random.default_rng(2)
+    new_prio_pool = [rng.random(BATCH) * 2.0 for _ in range(16)]
+    su = timed_rounds(impls, "sample_update", lambda i: (new_prio_pool[i % 16],), su_iters, rounds)
+    res: dict[str, Any] = {
+        "capacity": capacity, "stored": ours.size, "frames_stored": ours.frames_stored,
+        "naive_bytes_per_item": naive,
+        "allocated_bytes_per_item": ours.bytes_per_item,
+        "held_bytes_per_item": ours.nbytes / max(ours.size, 1),
+        "bytes_ratio_vs_naive": ours.bytes_per_item / naive,
+        "setup_s": setup_s,
+    }
+    for impl in impls:
+        res[impl.name] = {"sample_update_batches_per_s": su_iters / statistics.median(su[impl.name])}
+        log(f"[frames_{capacity}] {impl.name}: {res[impl.name]['sample_update_batches_per_s']:,.1f} sample+update batches/s")
+    if peer:
+        res["sample_ratio_vs_cpprb"] = (res["zenrl"]["sample_update_batches_per_s"]
+                                        / res["cpprb"]["sample_update_batches_per_s"])
+    del impls
+    gc.collect()
+    return res
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small capacities and few rounds")
@@ -248,6 +372,9 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for name, spec, cap, chunk, ins_it, su_it, rounds in cases:
         results[name] = run_case(name, spec, cap, chunk, ins_it, su_it, rounds, peer_cls)
+    img_cap, img_iters, img_rounds = (4_000, 5, 3) if args.quick else (50_000, 15, 5)
+    image = run_image_case(img_cap, img_iters, img_rounds, peer_cls is not None)
+    bw = burgerwar_bytes()
 
     first = results[cases[0][0]]
     out = {
@@ -263,6 +390,8 @@ def main(argv: list[str] | None = None) -> int:
             for n, r in results.items()
         },
         "cases": results,
+        "frames_once": image,
+        "burgerwar_camera_bytes": bw,
         "notes": (
             "ratio = ours/peer throughput (median of interleaved rounds), both with fresh "
             "output arrays per sample; sample_update_out_* is ours gathering into reused "
@@ -277,6 +406,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     if peer_err:
         out["peer_error"] = peer_err
+    # last, as the issue asks: frames stored once (84x84x4 stacks) vs naive obs/next_obs, and
+    # sampling vs cpprb's next_of + stack_compress on the same episodes
+    out["burgerwar_bytes_ratio_vs_today"] = round(bw["ratio"], 4)
+    out["image_bytes_ratio_vs_naive"] = round(image["bytes_ratio_vs_naive"], 4)
+    out["image_sample_ratio_vs_cpprb"] = (None if image.get("sample_ratio_vs_cpprb") is None
+                                          else round(image["sample_ratio_vs_cpprb"], 3))
     print(json.dumps(out))
     return 0
 

@@ -21,6 +21,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
 
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
+    python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
 ``--role sampler``.
@@ -48,6 +49,17 @@ from _common import Procs, emit, log, machine_info, record_error, stop_on_sigter
 from zenrl.common.config import ActorConfig  # noqa: E402
 
 CHUNK = ActorConfig().chunk_size  # what actors send by default
+#: transitions per image chunk (--images): configs/burgerwar_image_apex.yaml sends 32
+IMAGE_CHUNK = 64
+IMAGE_N_STEP = 3
+IMAGE_STACK = 4
+#: --images: the Burger War camera (64x64x3, one frame per observation) and Atari-style
+#: 4-frame stacks of 84x84 frames, both in frame mode (docs/protocol.md)
+IMAGE_KINDS = ("cam64", "atari84")
+
+
+def chunk_items(kind: str) -> int:
+    return CHUNK if kind == "cartpole" else IMAGE_CHUNK
 SAMPLE_BATCH = 512
 IN_FLIGHT = 4
 N_PUBLISHERS = 2
@@ -93,11 +105,52 @@ def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray],
     return out
 
 
-def encoded_pool(seed: int, count: int, actor_id: str) -> list[bytes]:
+def image_batches(kind: str, seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]]:
+    """``count`` frame-mode chunks of IMAGE_CHUNK transitions of one env, each carrying every
+    frame it names (ids from 0; shifted by the chunk's frame_base when sent): random uint8
+    frames, so compression would not help and the bytes are the image bytes."""
+    rng = np.random.default_rng(seed)
+    b, n = IMAGE_CHUNK, IMAGE_N_STEP
+    out = []
+    for _ in range(count):
+        if kind == "cam64":
+            frames = rng.integers(0, 256, (b + n, 64, 64, 3), dtype=np.uint8)
+            obs = np.arange(b, dtype=np.int64)
+        elif kind == "atari84":
+            frames = rng.integers(0, 256, (b + n + IMAGE_STACK - 1, 84, 84), dtype=np.uint8)
+            obs = np.arange(b, dtype=np.int64)[:, None] + np.arange(IMAGE_STACK)
+        else:
+            raise ValueError(f"unknown image kind {kind!r}")
+        batch = {"obs": obs, "action": rng.integers(0, 6, b).astype(np.int64),
+                 "reward": rng.random(b).astype(np.float32), "next_obs": obs + n,
+                 "terminated": rng.random(b) < 0.01, "truncated": np.zeros(b, bool), "n": np.full(b, n, np.uint8)}
+        out.append((batch, (rng.random(b) + 0.01).astype(np.float32), {"obs": frames}))
+    return out
+
+
+def kind_batches(kind: str, seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray, Any]]:
+    if kind == "cartpole":
+        return [(b, p, None) for b, p in cartpole_batches(seed, count)]
+    return image_batches(kind, seed, count)
+
+
+def shifted(batch: dict[str, np.ndarray], frames: Any, base: int) -> dict[str, np.ndarray]:
+    """A frame-mode chunk's ids moved to start at ``base`` (the chunk's frame_base)."""
+    if frames is None:
+        return batch
+    return {k: (v + base if k in ("obs", "next_obs") else v) for k, v in batch.items()}
+
+
+def encoded_pool(seed: int, count: int, actor_id: str, kind: str = "cartpole") -> list[bytes]:
     from zenrl.common import protocol as P
 
-    return [P.TransitionBatch(actor_id=actor_id, policy_version=0, seq=i, data=b, priorities=p).encode()
-            for i, (b, p) in enumerate(cartpole_batches(seed, count))]
+    out = []
+    base = 0
+    for i, (b, p, f) in enumerate(kind_batches(kind, seed, count)):
+        out.append(P.TransitionBatch(actor_id=actor_id, policy_version=0, seq=i, data=shifted(b, f, base), priorities=p,
+                                     frames=f, frame_base=None if f is None else base).encode())
+        base += 0 if f is None else len(f["obs"])
+    return out
 
 
 def wait_for_go(node: Any, keys: Any, pub_id: str, stop: threading.Event, timeout_s: float = 60) -> bool:
@@ -125,25 +178,28 @@ def role_pub(args: argparse.Namespace) -> int:
     stop = threading.Event()
     watch_parent(stop)
     keys = P.Keys(args.run)
-    pool_n = 64
+    pool_n = 64 if args.kind == "cartpole" else 16
     sent_warm = 0
+    base = 0  # frame mode: the next chunk's frame_base
     with Node(args.router, 20.0) as node:
         deadline = time.monotonic() + 30
         if args.mode == "raw":
-            payloads = encoded_pool(args.seed, pool_n, args.id)
+            payloads = encoded_pool(args.seed, pool_n, args.id, args.kind)
             pub = node.publisher(keys.transitions(args.id))
             while not pub.matching_status.matching:  # the raw subscriber is there
                 if time.monotonic() > deadline or stop.is_set():
                     return 3
                 time.sleep(0.05)
         else:
-            batches = cartpole_batches(args.seed, pool_n)
+            batches = kind_batches(args.kind, args.seed, pool_n)
             client = ZenohReplayClient(node, keys, args.id)
             while not node.alive_now(keys.alive_role("replay"), 1.0):
                 if time.monotonic() > deadline or stop.is_set():
                     return 3
         if args.mode == "client":
-            client.insert(*batches[0], policy_version=0)  # declares the publisher
+            b, p, f = batches[0]
+            client.insert(shifted(b, f, base), p, policy_version=0, frames=f, frame_base=None if f is None else base)
+            base += 0 if f is None else len(f["obs"])  # (the first insert declares the publisher)
             sent_warm = 1
             time.sleep(0.3)
         if not wait_for_go(node, keys, args.id, stop):
@@ -161,8 +217,12 @@ def role_pub(args: argparse.Namespace) -> int:
         else:
             while not stop.is_set():
                 for _ in range(32):
-                    b, p = batches[i % pool_n]
-                    client.insert(b, p, policy_version=0)
+                    b, p, f = batches[i % pool_n]
+                    if f is None:
+                        client.insert(b, p, policy_version=0)
+                    else:
+                        client.insert(shifted(b, f, base), p, policy_version=0, frames=f, frame_base=base)
+                        base += len(f["obs"])
                     i += 1
                 if time.perf_counter() >= end:
                     break
@@ -173,7 +233,7 @@ def role_pub(args: argparse.Namespace) -> int:
             extra = {"sent_chunks_client": client.sent_chunks, "undelivered": client.undelivered_chunks,
                      "backlog": client.backlog, "warmup_chunks": sent_warm}
         res = {"sent_chunks": i + sent_warm, "loop_chunks": i, "elapsed_s": elapsed,
-               "send_rate_items_s": i * CHUNK / elapsed, **extra}
+               "send_rate_items_s": i * chunk_items(args.kind) / elapsed, **extra}
         # Closing the session while messages are still queued on their way loses them, so stay
         # until the benchmark has seen them arrive (it says so on bench/release).
         release = node.subscribe_latest(f"{keys.prefix}/bench/release")
@@ -232,7 +292,7 @@ def role_rawsub(args: argparse.Namespace) -> int:
     n = st["n"]
     span = (st["last"] - st["first"]) if n > 1 else 0.0
     print(json.dumps({"messages": n, "expected": expect[-1] if expect else None, "bytes": st["bytes"], "span_s": span,
-                      "items_per_s": (n - 1) * CHUNK / span if span > 0 else None,
+                      "items_per_s": (n - 1) * chunk_items(args.kind) / span if span > 0 else None,
                       "mb_per_s": st["bytes"] / span / 1e6 if span > 0 else None}), flush=True)
     return 0
 
@@ -341,21 +401,21 @@ def go(node: Any, keys: Any, n: int) -> float:
     return t
 
 
-def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float) -> list[str]:
+def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float, kind: str = "cartpole") -> list[str]:
     return [str(Path(__file__).resolve()), "--role", "pub", "--mode", role_mode, "--router", ep, "--run", run,
-            "--id", pid, "--seed", str(seed), "--duration", str(duration)]
+            "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind]
 
 
-def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float) -> dict[str, Any]:
+def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole") -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     rrun = f"{run}-raw{r}"
     keys = P.Keys(rrun)
     sent_watch = SentWatch(node, keys.prefix)
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
-                                     "--idle", "5", "--max-s", str(duration + 120)], capture=True)
+                                     "--idle", "5", "--max-s", str(duration + 120), "--kind", kind], capture=True)
     wait_until(lambda: node.alive_now(keys.alive_role("rawsub"), 1.0), 60, "raw subscriber")
-    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration), capture=True)
+    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     go(node, keys, N_PUBLISHERS)
     sent = sum(x["sent_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
@@ -390,12 +450,12 @@ def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final
 
 
 def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str, r: int,
-                  duration: float) -> dict[str, Any]:
+                  duration: float, kind: str = "cartpole") -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     keys = P.Keys(run)
     sent_watch = SentWatch(node, keys.prefix)
-    pubs = [procs.start(f"svcpub{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration), capture=True)
+    pubs = [procs.start(f"svcpub{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     # the publishers' warm-up chunks must be in before the clock starts
     wait_until(lambda: len(node.alive_now(keys.alive_role("benchpub"), 1.0)) >= N_PUBLISHERS, 60, "publishers ready")
@@ -406,7 +466,7 @@ def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str,
     t_go = go(node, keys, N_PUBLISHERS)
     pres = sent_watch.wait(N_PUBLISHERS, duration + 60)
     pre_go = [v for t, v in stats.snapshot() if t <= t_go]
-    expected = (pre_go[-1]["inserted_total"] if pre_go else 0) + sum(x["loop_chunks"] for x in pres) * CHUNK
+    expected = (pre_go[-1]["inserted_total"] if pre_go else 0) + sum(x["loop_chunks"] for x in pres) * chunk_items(kind)
     # the service's count once the stream is fully ingested (or has stopped changing for 5 s)
     last = [stats.latest("inserted_total"), time.monotonic()]
 
@@ -425,7 +485,7 @@ def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str,
         communicate(procs, f"svcpub{r}-{k}", p, 30)
     final = stats.latest("inserted_total")
     rate, dt = service_rate(stats.snapshot(), t_go, final)
-    sent = sum(x["loop_chunks"] for x in pres) * CHUNK
+    sent = sum(x["loop_chunks"] for x in pres) * chunk_items(kind)
     ingested = final - (pre_go[-1]["inserted_total"] if pre_go else 0)
     return {"items_per_s": rate, "window_s": dt, "sent_items": sent, "ingested_items": ingested,
             "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres),
@@ -533,6 +593,79 @@ def orchestrate(args: argparse.Namespace) -> int:
     return emit(out)
 
 
+def orchestrate_images(args: argparse.Namespace) -> int:
+    """Image mode: per kind, a fresh replay process and alternating raw / service rounds on the
+    same frame-mode chunks (each chunk carries all IMAGE_CHUNK + n (+ stack) frames it names)."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node, open_router
+    from zenrl.launcher import free_port
+
+    t_start = time.perf_counter()
+    rounds, duration = (1, 2.0) if args.quick else (3, 5.0)
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-replay-img-"))
+    router = open_router([ep])
+    procs = Procs(tmp)
+    node = None
+    out: dict[str, Any] = {"bench": "replay_service", "mode": "images", "quick": bool(args.quick), "error": None}
+    try:
+        node = Node(ep, 10.0)
+        log(f"router {ep}, logs in {tmp}")
+        kinds: dict[str, Any] = {}
+        for kind in IMAGE_KINDS:
+            run = f"bench{uuid.uuid4().hex[:8]}"
+            keys = P.Keys(run)
+            stats = StatsWatch(node, keys)
+            replay = procs.start(f"replay-{kind}", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
+                                                    "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
+                                                    "--set", "replay.capacity=20000", "--log-level", "INFO"])
+            wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
+            raw, svc = [], []
+            for r in range(rounds):
+                res = raw_round(procs, node, ep, run, r, duration, kind)
+                log(f"[{kind}] round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
+                    f"{res['received_chunks']}/{res['sent_chunks']} chunks")
+                raw.append(res)
+                res = service_round(procs, node, stats, ep, run, r, duration, kind)
+                log(f"[{kind}] round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
+                    f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
+                svc.append(res)
+            procs.stop(replay)
+            raw_med = statistics.median(x["items_per_s"] for x in raw)
+            svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
+            svc_med = statistics.median(svc_rates) if svc_rates else None
+            chunk_bytes = len(encoded_pool(0, 1, "pub0", kind)[0])
+            kinds[kind] = {
+                "ingest_ratio_vs_raw_zenoh": None if not svc_med else round(svc_med / raw_med, 3),
+                "service_ingest_items_per_s": None if svc_med is None else round(svc_med),
+                "raw_zenoh_items_per_s": round(raw_med),
+                "service_mb_per_s": None if svc_med is None else round(svc_med / IMAGE_CHUNK * chunk_bytes / 1e6, 1),
+                "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
+                "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
+                "rounds": {"raw": raw, "service": svc},
+            }
+        out.update({
+            "kinds": kinds,
+            "target_ingest_ratio": 0.7,
+            "publishers": N_PUBLISHERS,
+            "notes": ("frame-mode chunks of random uint8 frames (no compression); rates at the receiver; raw = "
+                      "the same encoded messages to a subscriber process that only copies the payload out; "
+                      "medians of alternating rounds; 2-core machine shared with other work: noisy"),
+            **machine_info(t_start),
+        })
+        for kind in IMAGE_KINDS:  # last keys of the JSON line: the ratios
+            out[f"{kind}_ingest_ratio_vs_raw_zenoh"] = kinds[kind]["ingest_ratio_vs_raw_zenoh"]
+    except BaseException as e:
+        record_error(out, e)
+    finally:
+        procs.stop_all()
+        if node is not None:
+            node.close()
+        router.close()
+    return emit(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round of each measurement")
@@ -546,6 +679,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=1.0, help=argparse.SUPPRESS)
     ap.add_argument("--idle", type=float, default=1.5, help=argparse.SUPPRESS)
     ap.add_argument("--max-s", type=float, default=120.0, help=argparse.SUPPRESS)
+    ap.add_argument("--kind", choices=["cartpole", *IMAGE_KINDS], default="cartpole", help=argparse.SUPPRESS)
+    ap.add_argument("--images", action="store_true",
+                    help="image mode: frame-mode chunks of 64x64x3 and of 84x84x4 stacks instead of CartPole chunks")
     args = ap.parse_args(argv)
     if args.role == "pub":
         return role_pub(args)
@@ -555,7 +691,7 @@ def main(argv: list[str] | None = None) -> int:
         return role_sampler(args)
     # SIGTERM on the benchmark itself still runs the cleanup in orchestrate's finally
     stop_on_sigterm()
-    return orchestrate(args)
+    return orchestrate_images(args) if args.images else orchestrate(args)
 
 
 

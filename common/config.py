@@ -65,6 +65,7 @@ class ReplayConfig(_Section):
     max_bytes: Optional[int] = Field(None, ge=1, description="Cap on replay storage in bytes; the ring is sized to min(capacity, max_bytes / item size).")
     alpha: float = Field(0.6, ge=0, le=1, description="Prioritization exponent (0 = uniform).")
     uniform: bool = Field(False, description="Sample uniformly instead of by priority.")
+    frames_per_item: float = Field(1.05, gt=0, le=64, description="Frame mode (image envs): frame ring slots per transition slot; an actor sends about 1 + 1/episode length frames per transition. Too few: the frame ring, not capacity, bounds the transitions stored.")
     min_size: int = Field(1_000, ge=1, description="No samples are served before the replay holds this many transitions.")
     samples_per_insert: Optional[float] = Field(None, gt=0, description="If set, cap sampled/inserted transitions at this ratio (Reverb-style rate limit).")
     spi_tolerance: float = Field(10_000.0, gt=0, description="How many sampled transitions the samples-per-insert limit may run ahead.")
@@ -92,6 +93,9 @@ class ActorConfig(_Section):
     episode_report_s: float = Field(1.0, gt=0, description="How often finished-episode statistics are published.")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads and numpy BLAS threads in each actor.")
     max_steps_per_s: Optional[float] = Field(None, gt=0, description="Cap on each actor's env steps per second (all its envs), leaving CPU to the learner on small machines; none by default.")
+    frames: bool = Field(True, description="Image envs (any uint8 observation of 2+ dims): send each observation frame once with frame ids (docs/protocol.md) instead of obs/next_obs arrays; false sends full arrays.")
+    frame_stack: int = Field(0, ge=0, description="Frame mode: observations are stacks of this many frames on their first axis (gymnasium FrameStackObservation), shared between neighbouring stacks; 0: not stacked.")
+    compress: Literal["none", "lz4"] = Field("none", description="Compress the uint8 arrays (image frames) of the chunks sent to the replay: lz4 is ~GB/s and shrinks rendered frames many times; random-looking images do not shrink.")
     backlog_chunks: int = Field(512, ge=0, description="Chunks kept while no replay is reachable (resent when it is back); older ones are dropped and counted.")
 
 

@@ -6,6 +6,7 @@ a plain ``Box`` space, ``"obs/<key>"`` for each key of a ``Dict`` space. Shapes:
 
     Box float (D...)            -> "obs":        float32[B, D...]   (flattened, MLP)
     Box uint8 (H, W, C)         -> "obs":        uint8[B, H, W, C]  (Nature conv, /255 on device)
+    Box uint8 (k, H, W), k <= 4 -> "obs":        uint8[B, k, H, W]  (frame stacks, channels first)
     Dict {k: Box}               -> "obs/k":      one encoder per key, outputs concatenated
 """
 
@@ -88,11 +89,14 @@ class MLPEncoder(nn.Module):
 
 
 class ConvEncoder(nn.Module):
-    """Nature-DQN conv torso. uint8[B, H, W, C] -> float[B, F]; scaled by 1/255 on the device."""
+    """Nature-DQN conv torso. uint8[B, H, W, C] -> float[B, F]; scaled by 1/255 on the device.
+    A shape ``(k, H, W)`` with ``k <= 4 < W`` is a stack of k frames on the first axis
+    (gymnasium's FrameStackObservation, and how the replay stores stacks): channels first."""
 
     def __init__(self, shape: tuple[int, ...]) -> None:
         super().__init__()
-        h, w, c = shape
+        self.channels_first = shape[0] <= 4 < shape[2]
+        c, h, w = shape if self.channels_first else (shape[2], shape[0], shape[1])
         if min(h, w) >= 36:
             layers = [nn.Conv2d(c, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(), nn.Conv2d(64, 64, 3, 1), nn.ReLU()]
         else:  # small images (e.g. 32x32): a lighter stack that still fits
@@ -102,7 +106,9 @@ class ConvEncoder(nn.Module):
             self.out_dim = int(self.net(torch.zeros(1, c, h, w)).shape[1])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x.permute(0, 3, 1, 2).float() * (1.0 / 255.0))
+        if not self.channels_first:
+            x = x.permute(0, 3, 1, 2)
+        return self.net(x.float() * (1.0 / 255.0))
 
 
 class ObsEncoder(nn.Module):

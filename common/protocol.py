@@ -23,6 +23,7 @@ import re
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Mapping
 
+import lz4.block
 import msgpack
 import numpy as np
 
@@ -170,10 +171,25 @@ _DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
 _WIRE_NAMES = {dt.newbyteorder("<"): name for name, dt in _DTYPES.items()}
 
 
-def encode_array(a: np.ndarray) -> dict[str, Any]:
+#: Array codecs a sender may declare in the array map (uint8 arrays only).
+CODECS = ("lz4",)
+#: uint8 arrays smaller than this travel raw even when compression is asked for.
+MIN_COMPRESS_BYTES = 4096
+#: The lz4 block format cannot expand data by more than ~255x: a declared size beyond this
+#: factor of the compressed bytes is a lie (a decompression bomb) and is refused unread.
+LZ4_MAX_RATIO = 255
+
+
+def encode_array(a: np.ndarray, codec: str | None = None) -> dict[str, Any]:
     """``np.ndarray`` -> wire map; one copy at most (only if ``a`` is not C-contiguous or is
-    big-endian)."""
+    big-endian). ``codec`` ("lz4"): uint8 arrays of at least MIN_COMPRESS_BYTES are compressed
+    (lz4 block format, the decompressed byte count declared as ``size``)."""
     a = np.ascontiguousarray(a)
+    if codec is not None and a.dtype == np.uint8 and a.nbytes >= MIN_COMPRESS_BYTES:
+        if codec not in CODECS:
+            raise ProtocolError("codec", f"{codec!r} is not one of {list(CODECS)}", "field")
+        return {"dtype": "uint8", "shape": list(a.shape), "codec": codec, "size": a.nbytes,
+                "data": lz4.block.compress(memoryview(a).cast("B"), store_size=False)}
     name = _WIRE_NAMES.get(a.dtype)
     if name is None:
         if a.dtype.byteorder == ">":
@@ -186,12 +202,15 @@ def encode_array(a: np.ndarray) -> dict[str, Any]:
 
 
 _ARRAY_KEYS = {"dtype", "shape", "data"}
+_PACKED_KEYS = {"dtype", "shape", "data", "codec", "size"}
 
 
 def decode_array(name: str, m: Any) -> np.ndarray:
-    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy)."""
+    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed)."""
     if type(m) is not dict or m.keys() != _ARRAY_KEYS:
-        raise ProtocolError(name, "must be a map with exactly dtype, shape, data", "array")
+        if type(m) is dict and m.keys() == _PACKED_KEYS:
+            return _decode_packed(name, m)
+        raise ProtocolError(name, "must be a map with exactly dtype, shape, data (and codec, size when compressed)", "array")
     dtype, shape, data = m["dtype"], m["shape"], m["data"]
     dt = _DTYPES.get(dtype) if type(dtype) is str else None
     if dt is None:
@@ -210,6 +229,32 @@ def decode_array(name: str, m: Any) -> np.ndarray:
     return np.frombuffer(data, dtype=dt).reshape(shape)
 
 
+def _decode_packed(name: str, m: dict[str, Any]) -> np.ndarray:
+    """A compressed array: every declared number is checked before a byte is decompressed."""
+    codec, size, dtype, shape, data = m["codec"], m["size"], m["dtype"], m["shape"], m["data"]
+    if codec not in CODECS:
+        raise ProtocolError(f"{name}.codec", f"{codec!r} is not one of {list(CODECS)}", "codec")
+    if dtype != "uint8":
+        raise ProtocolError(f"{name}.dtype", f"compressed arrays must be uint8, got {dtype!r}", "dtype")
+    if type(shape) is not list or len(shape) > MAX_NDIM or any(type(d) is not int or d < 0 for d in shape):
+        raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+    if not isinstance(data, (bytes, bytearray)):
+        raise ProtocolError(f"{name}.data", "must be bin", "array")
+    expected = math.prod(shape)
+    if type(size) is not int or size != expected:
+        raise ProtocolError(f"{name}.size", f"declares {size!r} decompressed bytes; uint8 shape {shape} needs {expected}", "shape")
+    if size > LZ4_MAX_RATIO * len(data) + 64:
+        raise ProtocolError(f"{name}.size", f"declares {size} bytes from {len(data)} compressed bytes, more than "
+                            f"{codec} can expand; refused unread", "bomb")
+    try:
+        raw = lz4.block.decompress(data, uncompressed_size=size)
+    except lz4.block.LZ4BlockError:
+        raise ProtocolError(f"{name}.data", f"is not valid {codec} data for {size} bytes", "codec") from None
+    if len(raw) != size:
+        raise ProtocolError(f"{name}.data", f"decompresses to {len(raw)} bytes, declared {size}", "codec")
+    return np.frombuffer(raw, dtype=np.uint8).reshape(shape)
+
+
 _good_field_names: set[str] = set()
 
 
@@ -222,8 +267,8 @@ def _check_field_name(name: str, k: Any) -> None:
         _good_field_names.add(k)
 
 
-def encode_arrays(arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
-    return {k: encode_array(np.asarray(v)) for k, v in arrays.items()}
+def encode_arrays(arrays: Mapping[str, np.ndarray], codec: str | None = None) -> dict[str, Any]:
+    return {k: encode_array(np.asarray(v), codec) for k, v in arrays.items()}
 
 
 def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int | None = None) -> dict[str, np.ndarray]:
@@ -261,6 +306,9 @@ class Message:
     #: field name -> how to check/convert it: "int", "uint", "float", "str", "name", "bool",
     #: "arrays", "arrays?" (optional), "array", "array?", "map" (str -> scalar), "floats"
     SCHEMA: ClassVar[dict[str, str]] = {}
+    #: optional fields left out of the envelope when None (added to a message type later, so
+    #: peers that do not use them see the same bytes as before)
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset()
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
@@ -268,14 +316,17 @@ class Message:
             _REGISTRY[cls.TYPE] = cls
 
     # -- encode ---------------------------------------------------------------------------
-    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, codec: str | None = None) -> bytes:
+        """``codec`` ("lz4" or None): compress the uint8 arrays of the array maps."""
         env: dict[str, Any] = {"v": PROTOCOL_VERSION, "t": self.TYPE}
         for name, kind in _encode_plan(type(self)):
             v = getattr(self, name)
+            if v is None and name in self.OMIT_NONE:
+                continue
             if v is None or kind == 0:
                 env[name] = v
             elif kind == 2:
-                env[name] = encode_arrays(v)
+                env[name] = encode_arrays(v, codec)
             else:
                 env[name] = encode_array(np.asarray(v))
         out = msgpack.packb(env, use_bin_type=True)
@@ -416,21 +467,44 @@ def _require_finite(name: str, a: np.ndarray, nonneg: bool = False) -> None:
         raise ProtocolError(name, "contains negative values", "negative")
 
 
+def frame_table(field: str) -> str:
+    """Frame table a frame-id field reads: ``next_obs/X`` and ``obs/X`` both read ``obs/X``."""
+    return field[5:] if field.startswith("next_") else field
+
+
 @dataclass(frozen=True)
 class TransitionBatch(Message):
     """A chunk of B transitions from one actor (Ape-X). ``data``: flat ``{name: array[B, ...]}``
     (for Ape-X: ``obs/*``, ``action``, ``reward`` (n-step discounted sum), ``next_obs/*``,
     ``terminated``, ``truncated``, ``n`` (steps actually summed)); ``priorities``: float32[B] or
-    nil (then the replay uses its running max). Float arrays must be finite."""
+    nil (then the replay uses its running max). Float arrays must be finite.
+
+    Frame mode (image envs; both nil otherwise): ``frames`` ``{obs field: array[F, ...]}`` are
+    the observation frames this actor records for the first time, with ids ``frame_base ..
+    frame_base + F - 1`` (ids count up over the actor's life; every table has F frames, one per
+    recorded observation; F may be 0, then ``frame_base`` is the next id). Each data field whose
+    :func:`frame_table` is a key of ``frames`` holds frame ids instead of arrays: integer ``[B]``
+    (the item is one frame) or ``[B, k]`` (a stack of k frames, oldest first), naming frames of
+    this chunk or of the same actor's earlier chunks."""
 
     TYPE: ClassVar[str] = "transitions"
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
-                                        "data": "arrays", "priorities": "array?"}
+                                        "data": "arrays", "priorities": "array?", "frames": "arrays?",
+                                        "frame_base": "uint?"}
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"frames", "frame_base"})
     actor_id: str
     policy_version: int
     seq: int
     data: dict[str, np.ndarray]
     priorities: np.ndarray | None = None
+    frames: dict[str, np.ndarray] | None = None
+    frame_base: int | None = None
+
+    def frame_refs(self) -> dict[str, np.ndarray]:
+        """The data fields that are frame ids (empty outside frame mode)."""
+        if self.frames is None:
+            return {}
+        return {k: v for k, v in self.data.items() if frame_table(k) in self.frames}
 
     @property
     def batch_size(self) -> int:
@@ -452,6 +526,28 @@ class TransitionBatch(Message):
         if self.priorities is not None:
             _require_1d("priorities", self.priorities, "f", b)
             _require_finite("priorities", self.priorities, nonneg=True)
+        if self.frames is not None or self.frame_base is not None:
+            self._validate_frames()
+
+    def _validate_frames(self) -> None:
+        if self.frames is None or self.frame_base is None:
+            raise ProtocolError("frames", "frames and frame_base come together", "field")
+        n_f = None
+        for k, a in self.frames.items():
+            if a.ndim == 0 or (n_f is not None and a.shape[0] != n_f):
+                raise ProtocolError(f"frames.{k}", f"must hold one frame per id ({n_f} in the other tables)", "batch")
+            n_f = a.shape[0]
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(f"frames.{k}", "contains NaN or Inf", "nonfinite")
+        refs = self.frame_refs()
+        if not refs:
+            raise ProtocolError("frames", "no data field names a frame table", "field")
+        end = self.frame_base + n_f
+        for k, ids in refs.items():
+            if ids.dtype.kind not in "iu" or ids.ndim not in (1, 2):
+                raise ProtocolError(f"data.{k}", f"frame ids must be integer [B] or [B, k], got {ids.dtype.name}{list(ids.shape)}", "dtype")
+            if ids.size and (ids.min() < 0 or ids.max() >= end):
+                raise ProtocolError(f"data.{k}", f"frame ids must be in [0, {end}) (frame_base + frames)", "field")
 
 
 @dataclass(frozen=True)

@@ -45,8 +45,11 @@ class ZenohReplayClient:
     queries ``replay/sample``, ``update_priorities`` publishes a :class:`PriorityUpdate`."""
 
     def __init__(self, node: Node, keys: P.Keys, actor_id: str = "client", timeout_s: float = 5.0,
-                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, backlog_chunks: int = 512) -> None:
+                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, backlog_chunks: int = 512,
+                 codec: str | None = None) -> None:
         self.node = node
+        #: "lz4": inserted chunks carry their uint8 arrays compressed (see docs/protocol.md)
+        self.codec = codec
         self.keys = keys
         self.actor_id = P.check_name("actor_id", actor_id)
         self.timeout_s = timeout_s
@@ -66,16 +69,20 @@ class ZenohReplayClient:
         self.match_wait_s = min(1.0, timeout_s)
 
     def insert(self, batch: Mapping[str, np.ndarray], priorities: np.ndarray | None = None,
-               policy_version: int = -1) -> None:
-        """Publish one chunk. Raises ProtocolError if it would exceed the size cap."""
+               policy_version: int = -1, frames: Mapping[str, np.ndarray] | None = None,
+               frame_base: int | None = None) -> None:
+        """Publish one chunk (``frames``/``frame_base``: frame mode, see
+        :class:`~zenrl.common.protocol.TransitionBatch`). Raises ProtocolError if it would
+        exceed the size cap."""
         if self._tx is None:
             self._tx = self.node.publisher(self.keys.transitions(self.actor_id))
             # a new publisher learns of existing subscribers only after a round trip to the
             # router: wait for that (bounded) so the first chunks are not held back needlessly
             self._wait_matching(self.match_wait_s)
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
-                                data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32))
-        payload = msg.encode(self.max_bytes)
+                                data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32),
+                                frames=None if frames is None else dict(frames), frame_base=frame_base)
+        payload = msg.encode(self.max_bytes, self.codec)
         if not self._tx.matching_status.matching:
             # nobody would receive it (replay down, or the router restarting): hold it
             self._backlog.append(payload)

@@ -306,6 +306,26 @@ class InMemoryReplay:
         self._size = min(cap, self._size + n)
         return keys
 
+    def evict_before(self, key: int) -> int:
+        """Drop every stored item whose key is below ``key`` ahead of the ring (FIFO order is
+        kept: the live items stay one contiguous key range). A frame store calls this when it
+        must overwrite a frame that older items still reference. Returns the items dropped."""
+        lo = self._inserts_total - self._size
+        hi = min(int(key), self._inserts_total)
+        if hi <= lo:
+            return 0
+        cap = self._capacity
+        s0, m = lo % cap, hi - lo
+        n1 = min(m, cap - s0)
+        self._keys[s0 : s0 + n1] = -1
+        self._keys[: m - n1] = -1
+        if self._tree is not None:
+            self._tree.set_range(s0, np.zeros(n1))
+            if m > n1:
+                self._tree.set_range(0, np.zeros(m - n1))
+        self._size -= m
+        return m
+
     def start_at(self, first_key: int) -> None:
         """Make the next insert get key ``first_key`` (an empty buffer only): a replay restored
         from its log keeps the keys its items had, so in-flight priority updates still match."""
@@ -475,6 +495,8 @@ class InMemoryReplay:
         ``float``, ``str``, ``bool`` or nested dicts of those (no pickle needed).
         """
         n = self._size
+        if n != min(self._inserts_total, self._capacity):
+            raise ValueError("a buffer that evicted items ahead of the ring (evict_before) has no state_dict")
         spec = {
             name: {"shape": np.asarray(s.shape, dtype=np.int64), "dtype": s.dtype}
             for name, s in self._spec.items()

@@ -38,6 +38,7 @@ from zenrl.common.specs import spec_of_batch
 from zenrl.common.transport import Node
 from zenrl.replay.buffer import InMemoryReplay
 from zenrl.replay.durable import ReplayLog
+from zenrl.replay.frames import FrameReplay
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +138,14 @@ class ReplayService:
             except ProtocolError as e:  # cannot happen for records we wrote; never fatal
                 log.warning("skipping an undecodable log record: %s", e)
                 continue
+            if msg.frames is not None:
+                if self.buffer is not None and rec.first_key != self.buffer.inserts_total:
+                    log.warning("replay log gap: expected key %d, record starts at %d", self.buffer.inserts_total, rec.first_key)
+                try:
+                    records += self._insert_frames(msg, rec.first_key) is not None
+                except (ValueError, SpecMismatch) as e:
+                    log.warning("skipping a log record that does not fit the replay: %s", e)
+                continue
             data = self._with_meta(msg)
             if self.buffer is None:
                 self.buffer = self._make_buffer(data)
@@ -216,22 +225,26 @@ class ReplayService:
         """Decode and validate each ``(payload, source)``; insert the valid ones as one batch.
         A bad chunk is rejected and counted alone. Returns the items inserted."""
         good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray]]] = []
+        framed = 0
         for payload, source in items:
             try:
                 msg = P.TransitionBatch.decode(payload, self.max_bytes)
             except ProtocolError as e:
                 self.rejects.reject(e.reason, str(e), source)
                 continue
+            if msg.frames is not None:  # frame mode: chunk by chunk, in arrival order
+                framed += self._ingest_frames(payload, msg)
+                continue
             good.append((payload, msg, self._with_meta(msg)))
         if not good:
-            return 0
+            return framed
         with self._lock:
             if self.buffer is None:
                 try:
                     self.buffer = self._make_buffer(good[0][2])
                 except (ValueError, SpecMismatch) as e:
                     self.rejects.reject("spec", str(e), items[0][1])
-                    return 0
+                    return framed
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             ok = []
             for payload, msg, data in good:
@@ -241,7 +254,7 @@ class ReplayService:
                 else:
                     ok.append((payload, msg, data))
             if not ok:
-                return 0
+                return framed
             if len(ok) == 1:
                 data, prios = ok[0][2], ok[0][1].priorities
             else:
@@ -256,7 +269,7 @@ class ReplayService:
                 keys = self.buffer.insert(data, prios)
             except (SpecMismatch, ValueError) as e:  # validated above; kept as a last guard
                 self.rejects.reject("invalid", str(e), ok[0][1].actor_id)
-                return 0
+                return framed
             if self.journal is not None:
                 off = 0
                 for payload, msg, _ in ok:
@@ -268,9 +281,54 @@ class ReplayService:
                     self.snapshot()
         n = int(keys.shape[0])
         self.inserted.add(n)
-        return n
+        return n + framed
+
+    def _ingest_frames(self, payload: bytes, msg: P.TransitionBatch) -> int:
+        """Insert one frame-mode chunk (and log it: later chunks may name its frames)."""
+        with self._lock:
+            try:
+                res = self._insert_frames(msg)
+            except (ValueError, SpecMismatch) as e:
+                self.rejects.reject("spec", str(e), msg.actor_id)
+                return 0
+            if res is None:
+                return 0
+            if res.dropped:
+                self.rejects.reject("unresolved_frames", f"{res.dropped} transitions name frames this replay does not "
+                                    "hold (a lost chunk, or evicted); dropped", msg.actor_id)
+            if self.journal is not None:
+                first = int(res.keys[0]) if res.keys.size else self.buffer.inserts_total
+                self.journal.append(first, int(res.keys.size), payload)
+                if self.journal.maybe_flush():
+                    self.journal.prune(self.buffer.inserts_total - self.buffer.capacity)
+                if time.monotonic() - self._last_snapshot >= self.rcfg.snapshot_interval_s:
+                    self.snapshot()
+        self.inserted.add(int(res.keys.size))
+        return int(res.keys.size)
+
+    def _insert_frames(self, msg: P.TransitionBatch, first_key: int | None = None):
+        """Frame-mode insert (caller holds the lock); allocates a FrameReplay on the first
+        chunk. Returns the InsertResult, or None when rejected."""
+        refs = msg.frame_refs()
+        data = self._with_meta(msg)
+        batch = {k: v for k, v in data.items() if k not in refs}
+        if self.buffer is None:
+            ref_stack = {k: (0 if v.ndim == 1 else int(v.shape[1])) for k, v in refs.items()}
+            self.buffer = FrameReplay(spec_of_batch(batch), spec_of_batch(msg.frames), ref_stack, self.rcfg.capacity,
+                                      frames_per_item=self.rcfg.frames_per_item, max_bytes=self.rcfg.max_bytes,
+                                      alpha=self.rcfg.alpha, uniform=self.rcfg.uniform, seed=self.cfg.seed)
+            if first_key is not None:
+                self.buffer.start_at(first_key)
+            log.info("replay storage allocated (frame mode): %d items, %d frames, %d bytes per item",
+                     self.buffer.capacity, self.buffer.frame_capacity, self.buffer.bytes_per_item)
+        elif not isinstance(self.buffer, FrameReplay):
+            self.rejects.reject("spec", "a frame-mode chunk, but this replay stores full observations", msg.actor_id)
+            return None
+        return self.buffer.insert(msg.actor_id, msg.frame_base, msg.frames, batch, refs, msg.priorities)
 
     def _spec_mismatch(self, data: dict[str, np.ndarray]) -> str:
+        if isinstance(self.buffer, FrameReplay):
+            return "a chunk of full observations, but this replay stores frames (frame mode)"
         sig = self._spec_sig
         if data.keys() != sig.keys():
             return f"fields {sorted(data)} differ from the replay's {sorted(sig)}"
@@ -350,6 +408,9 @@ class ReplayService:
                 "inserted_total": 0 if b is None else b.inserts_total,
                 "stale_priority_updates": 0 if b is None else b.stale_updates,
             }
+            if isinstance(b, FrameReplay):
+                v.update({"frames_stored": b.frames_stored, "frames_unresolved_items": b.unresolved,
+                          "evicted_by_frames": b.evicted_by_frames})
         v.update({
             "inserts_per_s": self.inserted.rate(),
             "samples_per_s": self.sampled.rate(),

@@ -199,3 +199,80 @@ def test_epsilon_greedy_per_env_rates():
     # the same seed gives the same actions
     again = EpsilonGreedy(eps, A, np.random.default_rng(0))
     assert np.array_equal(np.stack([again(q) for _ in range(T)]), acts)
+
+
+class _StackEnvs:
+    """E envs whose observations are k-frame stacks (reset padding repeats the first frame, as
+    gymnasium's FrameStackObservation does) of unique 2x2 uint8 frames, plus a float vector."""
+
+    def __init__(self, E, k, rng):
+        self.E, self.k, self.rng, self.u = E, k, rng, 0
+        self.stacks = [self._reset() for _ in range(E)]
+        self.left = rng.integers(1, 9, E)
+
+    def _frame(self):
+        self.u += 1
+        return (np.frombuffer(np.array([self.u], "<u4").tobytes(), np.uint8).reshape(2, 2), np.float32(self.u))
+
+    def _reset(self):
+        f = self._frame()
+        return [f] * max(self.k, 1)
+
+    def obs(self, stacks):
+        img = np.stack([np.stack([f[0] for f in s]) for s in stacks])
+        vec = np.stack([np.stack([[f[1]] for f in s]) for s in stacks])
+        if not self.k:
+            img, vec = img[:, 0], vec[:, 0]
+        return {"obs/img": img, "obs/vec": vec}
+
+    def step(self):
+        nxt = [s[1:] + [self._frame()] if self.k else [self._frame()] for s in self.stacks]
+        self.left -= 1
+        done = self.left == 0
+        term = done & (self.rng.random(self.E) < 0.5)
+        final = self.obs(nxt)
+        for e in np.flatnonzero(done):
+            nxt[e] = self._reset()
+            self.left[e] = self.rng.integers(1, 9)
+        self.stacks = nxt
+        return final, term, done & ~term
+
+
+@pytest.mark.parametrize("k", [0, 1, 4])
+def test_frame_mode_matches_plain_mode(k):
+    """Frame mode emits the same transitions as plain mode, obs as frame ids that resolve, over
+    the frames sent in this and earlier blocks, to exactly the plain arrays; and it sends about
+    one frame per transition (not 2k)."""
+    rng = np.random.default_rng(k)
+    E, n = 3, 3
+    envs = _StackEnvs(E, k, rng)
+    plain = NStepBlocks(E, n, 0.9, block_steps=4)
+    framed = NStepBlocks(E, n, 0.9, block_steps=4, frame_stack=k)
+    frames = {"obs/img": [], "obs/vec": []}
+    transitions = frames_sent = 0
+    values = lambda o: o["obs/vec"].reshape(len(o["obs/vec"]), -1).sum(1)  # noqa: E731
+    for t in range(120):
+        obs = envs.obs(envs.stacks)
+        q = rng.random((E, 2)).astype(np.float32)
+        a, r = rng.integers(0, 2, E), rng.random(E)
+        final, term, trunc = envs.step()
+        bp = plain.add(obs, q, a, r, final, term, trunc, values)
+        bf = framed.add(obs, q, a, r, final, term, trunc, values)
+        assert (bp is None) == (bf is None)
+        if bp is None:
+            continue
+        assert bf.frame_base == frames_sent
+        for f, v in bf.frames.items():
+            frames[f].extend(v)
+        frames_sent += len(bf.frames["obs/img"])
+        transitions += len(bp)
+        np.testing.assert_allclose(bf.priorities, bp.priorities, rtol=1e-6)
+        for key, v in bp.data.items():
+            got = bf.data[key]
+            if key.split("/")[0] in ("obs", "next_obs"):
+                table = np.stack(frames["obs/" + key.split("/", 1)[1]])
+                assert got.shape == ((len(bp),) if not k else (len(bp), k))
+                got = table[got]
+            np.testing.assert_array_equal(got, v, err_msg=key)
+    assert transitions > 200
+    assert frames_sent <= 1.2 * transitions + (n + 4) * E  # ~1 + 1/episode length per transition
