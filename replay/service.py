@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
@@ -66,6 +67,11 @@ class ReplayService:
         self.not_ready_replies = 0
         self.sampled_items = 0
         self._stop = threading.Event()
+        #: set first on shutdown: the transitions callback then returns at once (never waits on
+        #: a queue that is about to stop being drained)
+        self._closing = threading.Event()
+        self.dropped_stopping = 0
+        self._tx_sub = None
         self._threads: list[threading.Thread] = []
         self._stats_pub = None
         self._spec_sig: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
@@ -83,7 +89,7 @@ class ReplayService:
         t = threading.Thread(target=self._ingest_loop, name="replay-ingest", daemon=True)
         t.start()
         self._threads.append(t)
-        self.node.subscribe(self.keys.transitions_all, self._on_transitions)
+        self._tx_sub = self.node.subscribe(self.keys.transitions_all, self._on_transitions)
         self.node.subscribe(self.keys.priorities, self._on_priorities)
         self.node.queryable(self.keys.sample, self._on_sample)
         self.node.token(self.keys.alive("replay", self.id))
@@ -99,6 +105,16 @@ class ReplayService:
             self.shutdown()
 
     def shutdown(self) -> None:
+        """Stop in an order that cannot stall under ingest load: refuse new chunks (the
+        callback returns at once) and undeclare the transitions subscriber, let the ingest
+        thread insert what is already queued, then flush the log and write the final snapshot.
+        The session is closed by the caller after this returns."""
+        self._closing.set()
+        if self._tx_sub is not None:
+            try:
+                self._tx_sub.undeclare()
+            except zenoh.ZError as e:  # the session may be gone (router down): go on stopping
+                log.debug("undeclaring the transitions subscriber failed: %s", e)
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5)
@@ -106,7 +122,9 @@ class ReplayService:
             with self._lock:
                 self.snapshot()
                 self.journal.close()
-            log.info("replay log flushed: %d items stored", 0 if self.buffer is None else self.buffer.size)
+            log.info("replay log flushed: %d items inserted, %d stored",
+                     0 if self.buffer is None else self.buffer.inserts_total,
+                     0 if self.buffer is None else self.buffer.size)
 
     # -- durability ---------------------------------------------------------------------------
     def restore(self) -> None:
@@ -148,11 +166,19 @@ class ReplayService:
 
     # -- ingest -----------------------------------------------------------------------------
     def _on_transitions(self, key: str, payload: bytes) -> None:
-        try:
-            self._queue.put((key, payload), timeout=self.rcfg.drop_after_s)
-        except queue.Full:
-            self.dropped_queue_full += 1
-            self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+        # wait for queue space in short slices so that a shutdown is noticed at once, not after
+        # drop_after_s per chunk (a full queue's consumer may be the one stopping)
+        deadline = time.monotonic() + self.rcfg.drop_after_s
+        while not self._closing.is_set():
+            try:
+                self._queue.put((key, payload), timeout=min(0.05, max(0.0, deadline - time.monotonic())))
+                return
+            except queue.Full:
+                if time.monotonic() >= deadline:
+                    self.dropped_queue_full += 1
+                    self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+                    return
+        self.dropped_stopping += 1  # arrived while stopping: never inserted, so never acknowledged as such
 
     def _ingest_loop(self) -> None:
         while not self._stop.is_set():
@@ -163,13 +189,23 @@ class ReplayService:
                     with self._lock:
                         self.journal.maybe_flush()
                 continue
-            batch = [first]  # drain what is queued: one insert (and tree update) for many chunks
-            while len(batch) < self.rcfg.ingest_batch_chunks:
-                try:
-                    batch.append(self._queue.get_nowait())
-                except queue.Empty:
-                    break
-            self.ingest_many([(payload, key) for key, payload in batch])
+            self._ingest_queued(first)
+        # stopping: what was queued before the subscriber went is inserted (and logged), not lost
+        while True:
+            try:
+                first = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            self._ingest_queued(first)
+
+    def _ingest_queued(self, first: tuple[str, bytes]) -> None:
+        batch = [first]  # drain what is queued: one insert (and tree update) for many chunks
+        while len(batch) < self.rcfg.ingest_batch_chunks:
+            try:
+                batch.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        self.ingest_many([(payload, key) for key, payload in batch])
 
     def ingest(self, payload: bytes, source: str = "") -> int:
         """Decode, validate and insert one :class:`TransitionBatch`; returns items inserted
@@ -320,6 +356,7 @@ class ReplayService:
             "sample_batches_total": self.sampled.total,
             "not_ready_replies": self.not_ready_replies,
             "dropped_queue_full": self.dropped_queue_full,
+            "dropped_stopping": self.dropped_stopping,
             "ingest_queue": self._queue.qsize(),
             "restored_items": self.restored_items,
         })
