@@ -20,6 +20,7 @@ without flooding; the service keeps serving everyone else.
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import threading
@@ -32,14 +33,19 @@ import zenoh
 
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
+from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.specs import spec_of_batch
 from zenrl.common.transport import Node
 from zenrl.replay.buffer import InMemoryReplay
+from zenrl.replay.checks import ChunkChecker, Quarantine
 from zenrl.replay.durable import ReplayLog
 
 log = logging.getLogger(__name__)
+
+#: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
+TOP_SOURCES = 20
 
 #: Column the service adds to every item: the weight version the actor acted with (policy lag).
 POLICY_VERSION_FIELD = "meta/policy_version"
@@ -75,6 +81,11 @@ class ReplayService:
         self._threads: list[threading.Thread] = []
         self._stats_pub = None
         self._spec_sig: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+        self.checker = make_checker(cfg) if self.rcfg.check_semantics else None
+        self.quarantine = Quarantine(self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, self.rcfg.quarantine_s)
+        self._quarantine_tokens: dict[str, Any] = {}
+        self.rejected_by_source: collections.Counter[str] = collections.Counter()
+        self.dropped_quarantined = 0
         self.journal: ReplayLog | None = None
         self.restored_items = 0
         self._last_snapshot = time.monotonic()
@@ -166,6 +177,9 @@ class ReplayService:
 
     # -- ingest -----------------------------------------------------------------------------
     def _on_transitions(self, key: str, payload: bytes) -> None:
+        if self.quarantine.active and self.quarantine.drop(source_of(key)):
+            self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
+            return
         # wait for queue space in short slices so that a shutdown is noticed at once, not after
         # drop_after_s per chunk (a full queue's consumer may be the one stopping)
         deadline = time.monotonic() + self.rcfg.drop_after_s
@@ -213,15 +227,21 @@ class ReplayService:
         return self.ingest_many([(payload, source)])
 
     def ingest_many(self, items: list[tuple[bytes, str]]) -> int:
-        """Decode and validate each ``(payload, source)``; insert the valid ones as one batch.
-        A bad chunk is rejected and counted alone. Returns the items inserted."""
+        """Decode and validate each ``(payload, source)`` (form, then meaning); insert the valid
+        ones as one batch. A bad chunk is rejected and counted alone, by reason and by source.
+        Returns the items inserted."""
         good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray]]] = []
         for payload, source in items:
             try:
                 msg = P.TransitionBatch.decode(payload, self.max_bytes)
             except ProtocolError as e:
-                self.rejects.reject(e.reason, str(e), source)
+                self._reject(e.reason, str(e), source)
                 continue
+            if self.checker is not None:
+                why = self.checker.check(msg.data, msg.priorities)
+                if why is not None:
+                    self._reject(why.reason, why.detail, source)
+                    continue
             good.append((payload, msg, self._with_meta(msg)))
         if not good:
             return 0
@@ -230,14 +250,14 @@ class ReplayService:
                 try:
                     self.buffer = self._make_buffer(good[0][2])
                 except (ValueError, SpecMismatch) as e:
-                    self.rejects.reject("spec", str(e), items[0][1])
+                    self._reject("spec", str(e), items[0][1], locked=True)
                     return 0
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             ok = []
             for payload, msg, data in good:
                 why = self._spec_mismatch(data)
                 if why:
-                    self.rejects.reject("spec", why, msg.actor_id)
+                    self._reject("spec", why, self.keys.transitions(msg.actor_id), locked=True)
                 else:
                     ok.append((payload, msg, data))
             if not ok:
@@ -269,6 +289,25 @@ class ReplayService:
         n = int(keys.shape[0])
         self.inserted.add(n)
         return n
+
+    def _reject(self, reason: str, detail: str, source: str, locked: bool = False) -> None:
+        """Count a rejected chunk by reason and by source (the actor id in its key); a source
+        that keeps sending bad chunks is quarantined."""
+        src = source_of(source)
+        self.rejects.reject(reason, detail, source)
+        if locked:
+            self._count_source(src, reason)
+        else:
+            with self._lock:
+                self._count_source(src, reason)
+
+    def _count_source(self, src: str, reason: str) -> None:
+        if src not in self.rejected_by_source and len(self.rejected_by_source) >= 10_000:
+            return  # bounded memory however many ids a sender invents (the totals still count)
+        self.rejected_by_source[src] += 1
+        if self.quarantine.record(src, reason):
+            log.warning("source %s quarantined for %.0f s: %d rejected chunks within %.0f s (last: %s)", src,
+                        self.rcfg.quarantine_s, self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, reason)
 
     def _spec_mismatch(self, data: dict[str, np.ndarray]) -> str:
         sig = self._spec_sig
@@ -365,13 +404,61 @@ class ReplayService:
                       "log_torn_records": self.journal.torn_records,
                       "durable_through": self.journal.durable_through})
         v.update(self.rejects.as_values())
+        with self._lock:
+            for src, n in self.rejected_by_source.most_common(TOP_SOURCES):
+                v[f"rejected_from/{src}"] = n
+            v["quarantined"] = len(self.quarantine.active)
+            v["quarantined_sources"] = self.quarantine.describe()
+            v["quarantines_total"] = self.quarantine.total
+        v["dropped_quarantined"] = self.dropped_quarantined
         return v
 
+    def update_quarantine(self) -> None:
+        """Hold a liveliness token ``quarantine/<source>`` while a source is quarantined, so
+        that slot claims (see zenrl.actor.slots) treat its exploration slot as free."""
+        with self._lock:
+            released = self.quarantine.expire()
+            active = list(self.quarantine.active)
+        for src in released:
+            tok = self._quarantine_tokens.pop(src, None)
+            log.info("source %s released from quarantine", src)
+            if tok is not None:
+                try:
+                    tok.undeclare()
+                except zenoh.ZError as e:
+                    log.debug("undeclaring the quarantine token of %s failed: %s", src, e)
+        for src in active:
+            if src not in self._quarantine_tokens:
+                try:
+                    self._quarantine_tokens[src] = self.node.session.liveliness().declare_token(self.keys.quarantined(src))
+                except (zenoh.ZError, P.ProtocolError) as e:
+                    log.warning("could not declare the quarantine token of %s: %s", src, e)
+
     def publish_stats(self) -> None:
+        self.update_quarantine()
         vals = self.stats_values()
         if self._stats_pub is not None:
             self._stats_pub.put(P.Stats(role="replay", id=self.id, time=time.time(), values=vals).encode())
         log.debug("replay stats %s", vals)
+
+
+def source_of(key: str) -> str:
+    """The sender a ``transitions/<actor>`` key names (its last segment)."""
+    return key.rsplit("/", 1)[-1]
+
+
+def make_checker(cfg: RunConfig) -> ChunkChecker:
+    """The semantic checks for this run's env, built from the config as the learner builds its
+    network (an env is made once to read its spaces, then closed)."""
+    env = make_env(cfg.env)
+    try:
+        chk = ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
+                                       cfg.replay.max_abs_reward, cfg.replay.max_priority)
+    finally:
+        env.close()
+    if not cfg.replay.check_obs_bounds:
+        chk.rules = {k: type(r)(r.dtype, r.shape) for k, r in chk.rules.items()}
+    return chk
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:

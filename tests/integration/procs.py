@@ -26,10 +26,11 @@ def publish(args: argparse.Namespace) -> int:
             b = args.chunk
             base = args.seed * 1_000_000 + i * b
             batch = {
-                "obs": rng.random((b, 4), dtype=np.float32),
+                # inside CartPole's observation bounds (the replay checks them)
+                "obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
                 "action": rng.integers(0, 2, b),
                 "reward": np.arange(base, base + b, dtype=np.float32),
-                "next_obs": rng.random((b, 4), dtype=np.float32),
+                "next_obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
                 "terminated": np.zeros(b, bool),
                 "n": np.full(b, 3, np.uint8),
             }
