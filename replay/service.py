@@ -340,6 +340,10 @@ class ReplayService:
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), key)
             return
+        if self.checker is not None and msg.priorities.size and float(msg.priorities.max()) > self.rcfg.max_priority:
+            self.rejects.reject("priority_bound", f"priority update {float(msg.priorities.max()):.3g} exceeds "
+                                f"replay.max_priority {self.rcfg.max_priority:.3g}", key)
+            return
         with self._lock:
             if self.buffer is not None:
                 self.buffer.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))

@@ -29,12 +29,14 @@ def publish(args: argparse.Namespace) -> int:
                 # inside CartPole's observation bounds (the replay checks them)
                 "obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
                 "action": rng.integers(0, 2, b),
-                "reward": np.arange(base, base + b, dtype=np.float32),
+                "reward": (rng.uniform(-1, 1, b) if args.plain else np.arange(base, base + b)).astype(np.float32),
                 "next_obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
                 "terminated": np.zeros(b, bool),
                 "n": np.full(b, 3, np.uint8),
             }
             client.insert(batch, rng.random(b).astype(np.float32) + 0.1, policy_version=i)
+            if args.pause_s:
+                time.sleep(args.pause_s)  # pacing a steady stream, not waiting on a condition
         if client.flush_backlog(10.0):
             return 4  # chunks left undelivered
     return 0
@@ -69,6 +71,8 @@ def main() -> int:
     s.add_argument("--chunks", type=int, default=20)
     s.add_argument("--chunk", type=int, default=50)
     s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--plain", action="store_true", help="ordinary rewards in [-1, 1] (default: tagged by seed)")
+    s.add_argument("--pause-s", type=float, default=0.0, help="pause between chunks")
     s = sub.add_parser("claim")
     s.add_argument("--router", required=True)
     s.add_argument("--run", required=True)
