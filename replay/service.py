@@ -229,57 +229,57 @@ class ReplayService:
     def ingest_many(self, items: list[tuple[bytes, str]]) -> int:
         """Decode and validate each ``(payload, source)`` (form, then meaning); insert the valid
         ones as one batch. A bad chunk is rejected and counted alone, by reason and by source.
-        Returns the items inserted."""
-        good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray]]] = []
+        Returns the items inserted.
+
+        The semantic checks run once on the combined batch (the insert needs it anyway), so their
+        per-call cost is paid once per batch, not per chunk; only when the batch fails are its
+        chunks checked one by one to find and reject the bad ones."""
+        good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]] = []
         for payload, source in items:
             try:
                 msg = P.TransitionBatch.decode(payload, self.max_bytes)
             except ProtocolError as e:
                 self._reject(e.reason, str(e), source)
                 continue
-            if self.checker is not None:
-                why = self.checker.check(msg.data, msg.priorities)
-                if why is not None:
-                    self._reject(why.reason, why.detail, source)
-                    continue
-            good.append((payload, msg, self._with_meta(msg)))
+            good.append((payload, msg, self._with_meta(msg), source))
         if not good:
             return 0
         with self._lock:
             if self.buffer is None:
+                if self.checker is not None:  # the first chunk defines the storage: check it alone
+                    good = [g for g in good if self._passes(g)]
+                    if not good:
+                        return 0
                 try:
                     self.buffer = self._make_buffer(good[0][2])
                 except (ValueError, SpecMismatch) as e:
-                    self._reject("spec", str(e), items[0][1], locked=True)
+                    self._reject("spec", str(e), good[0][3], locked=True)
                     return 0
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             ok = []
-            for payload, msg, data in good:
-                why = self._spec_mismatch(data)
+            for g in good:
+                why = self._spec_mismatch(g[2])
                 if why:
-                    self._reject("spec", why, self.keys.transitions(msg.actor_id), locked=True)
+                    self._reject("spec", why, g[3], locked=True)
                 else:
-                    ok.append((payload, msg, data))
+                    ok.append(g)
             if not ok:
                 return 0
-            if len(ok) == 1:
-                data, prios = ok[0][2], ok[0][1].priorities
-            else:
-                data = {k: np.concatenate([d[k] for _, _, d in ok]) for k in ok[0][2]}
-                if all(m.priorities is not None for _, m, _ in ok):
-                    prios = np.concatenate([m.priorities for _, m, _ in ok])
-                else:  # chunks without priorities take the running max, as on their own
-                    mp = np.float32(self.buffer.max_priority)
-                    prios = np.concatenate([m.priorities if m.priorities is not None else np.full(m.batch_size, mp, np.float32)
-                                            for _, m, _ in ok])
+            data, prios = self._combine(ok)
+            if self.checker is not None and self.checker.check(
+                    {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD}, prios) is not None:
+                ok = [g for g in ok if self._passes(g)]
+                if not ok:
+                    return 0
+                data, prios = self._combine(ok)
             try:
                 keys = self.buffer.insert(data, prios)
             except (SpecMismatch, ValueError) as e:  # validated above; kept as a last guard
-                self.rejects.reject("invalid", str(e), ok[0][1].actor_id)
+                self.rejects.reject("invalid", str(e), ok[0][3])
                 return 0
             if self.journal is not None:
                 off = 0
-                for payload, msg, _ in ok:
+                for payload, msg, _, _ in ok:
                     self.journal.append(int(keys[off]), msg.batch_size, payload)
                     off += msg.batch_size
                 if self.journal.maybe_flush():
@@ -289,6 +289,27 @@ class ReplayService:
         n = int(keys.shape[0])
         self.inserted.add(n)
         return n
+
+    def _combine(self, ok: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]]
+                 ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """One batch from several chunks (caller holds the lock)."""
+        if len(ok) == 1:
+            return ok[0][2], ok[0][1].priorities
+        data = {k: np.concatenate([g[2][k] for g in ok]) for k in ok[0][2]}
+        if all(g[1].priorities is not None for g in ok):
+            return data, np.concatenate([g[1].priorities for g in ok])
+        # chunks without priorities take the running max, as on their own
+        mp = np.float32(self.buffer.max_priority)
+        return data, np.concatenate([g[1].priorities if g[1].priorities is not None
+                                     else np.full(g[1].batch_size, mp, np.float32) for g in ok])
+
+    def _passes(self, g: tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]) -> bool:
+        """Semantic check of one chunk; a failure is rejected and counted (caller holds the lock)."""
+        why = self.checker.check(g[1].data, g[1].priorities)
+        if why is None:
+            return True
+        self._reject(why.reason, why.detail, g[3], locked=True)
+        return False
 
     def _reject(self, reason: str, detail: str, source: str, locked: bool = False) -> None:
         """Count a rejected chunk by reason and by source (the actor id in its key); a source
@@ -456,13 +477,10 @@ def make_checker(cfg: RunConfig) -> ChunkChecker:
     network (an env is made once to read its spaces, then closed)."""
     env = make_env(cfg.env)
     try:
-        chk = ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
-                                       cfg.replay.max_abs_reward, cfg.replay.max_priority)
+        return ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
+                                        cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds)
     finally:
         env.close()
-    if not cfg.replay.check_obs_bounds:
-        chk.rules = {k: type(r)(r.dtype, r.shape) for k, r in chk.rules.items()}
-    return chk
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:

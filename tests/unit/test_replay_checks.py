@@ -146,3 +146,19 @@ def test_quarantine_off_and_bounded():
     for i in range(1000):  # invented ids cannot grow memory
         q.record(f"id{i}", "x")
     assert len(q._recent) <= 10
+
+
+@pytest.mark.parametrize("shape, b", [((4,), 2000), ((3000,), 5), ((2, 3), 1)])
+def test_bounds_are_checked_in_every_block_and_in_the_rest(shape, b):
+    box = gym.spaces.Box(-1.0, 1.0, shape, np.float32)
+    chk = ChunkChecker(obs_rules_from_space(box), 2, 1, 10.0, 10.0)
+    base = {"obs": np.zeros((b, *shape), np.float32), "next_obs": np.zeros((b, *shape), np.float32),
+            "action": np.zeros(b, np.int64), "reward": np.zeros(b, np.float32), "n": np.ones(b, np.uint8),
+            "terminated": np.zeros(b, bool)}
+    assert chk.check(base, None) is None
+    base["obs"][...] = 1.0  # the bound itself is inside
+    assert chk.check(base, None) is None
+    for row in {0, b // 2, b - 1}:
+        d = {k: v.copy() for k, v in base.items()}
+        d["next_obs"].reshape(b, -1)[row, -1] = np.float32(1.0000001)
+        assert chk.check(d, None).reason == "obs_bounds", (row, shape)
