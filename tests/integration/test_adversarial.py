@@ -52,7 +52,7 @@ def _attacks(rng):
     add("evil-prio", "priority_bound", prio=(5, 1e30))
     d, p = _valid(rng)
     d["obs"] = d["obs"].astype(np.float64)
-    out.append(("evil-dtype", d, p, "obs_dtype"))
+    out.append(("evil-dtype", d, p, "spec"))  # differs from the storage (allocated from the env spec)
     return out
 
 
