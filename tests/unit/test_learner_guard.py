@@ -109,3 +109,33 @@ def test_actor_refuses_weights_that_would_load_as_inf():
     assert _same(before, _params(actor_net))
     node.latest = _weights(learner_net, 6)  # good weights still load
     assert f.maybe_load() and f.version == 6
+
+
+def test_k_skipped_updates_in_a_row_roll_back_to_the_last_checkpoint(tmp_path):
+    from zenrl.learner.service import ApexLearnerService
+
+    cfg = load_config(None, [f"runs_dir={tmp_path}", "network.hidden=[8]", "learner.guard_max_bad_updates=3",
+                             "learner.lr=0.01"])
+    svc = ApexLearnerService(cfg, node=None, run_id="k")
+    rng = np.random.default_rng(0)
+    B = 16
+    data = {"obs": rng.uniform(-0.1, 0.1, (B, 4)).astype(np.float32),
+            "next_obs": rng.uniform(-0.1, 0.1, (B, 4)).astype(np.float32),
+            "action": rng.integers(0, 2, B), "reward": np.ones(B, np.float32), "n": np.ones(B, np.uint8),
+            "terminated": np.zeros(B, bool)}
+    good = svc.dqn.batch_to_tensors(data, np.ones(B, np.float32))
+    for _ in range(3):
+        svc.dqn.update(good)
+    svc.save()
+    saved, saved_updates = _params(svc.dqn.online), svc.dqn.updates
+    for _ in range(2):
+        svc.dqn.update(good)  # moves on past the checkpoint
+    assert not _same(saved, _params(svc.dqn.online))
+    data["reward"][:2] = 3e38
+    bad = svc.dqn.batch_to_tensors(data, np.ones(B, np.float32))
+    for i in range(3):
+        assert svc.dqn.update(bad)[1] is None
+        assert svc.dqn.guard.rollback_due == (i == 2)
+    svc.rollback()
+    assert _same(saved, _params(svc.dqn.online)) and svc.dqn.updates == saved_updates
+    assert not svc.dqn.guard.rollback_due and svc.dqn.guard.rollbacks == 1
