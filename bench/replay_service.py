@@ -23,7 +23,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
 
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
-    python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~15 s)
+    python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
 ``--role sampler``.
@@ -501,7 +501,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     if args.checks_only:
         out = {"bench": "replay_service", "mode": "checks_only", "error": None}
         try:
-            out.update(checks_overhead(6, 1.0))
+            out.update(checks_overhead(10, 1.0))
             log(f"semantic checks: {out['ingest_us_per_chunk_checked']} vs {out['ingest_us_per_chunk_unchecked']} "
                 f"us per chunk, ratio {out['checks_overhead_ratio']}")
             out.update(machine_info(t_start))
@@ -588,7 +588,7 @@ def orchestrate(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round of each measurement")
-    ap.add_argument("--checks-only", action="store_true", help="only the semantic checks' cost per chunk, in process (~15 s)")
+    ap.add_argument("--checks-only", action="store_true", help="only the semantic checks' cost per chunk, in process (~25 s)")
     ap.add_argument("--role", choices=["pub", "rawsub", "sampler"], help=argparse.SUPPRESS)
     ap.add_argument("--mode", choices=["raw", "client"], default="client", help=argparse.SUPPRESS)
     ap.add_argument("--router", help=argparse.SUPPRESS)

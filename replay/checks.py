@@ -138,25 +138,17 @@ class ChunkChecker:
         return cls(obs_rules_from_space(observation_space), int(action_space.n), n_step, max_abs_reward, max_priority,
                    check_obs_bounds)
 
-    def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None) -> Rejection | None:
+    def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None,
+              fields_checked: bool = False) -> Rejection | None:
         """``None`` if the chunk may be stored, else the first rule it breaks. Each rule is one or
-        two whole-array numpy operations (per-call overhead dominates at CartPole's sizes)."""
-        for k, (dt, shape) in self.required.items():
-            a = data.get(k)
-            if a is None:
-                return Rejection("spec", f"field {k} is missing")
-            if a.dtype != dt or a.shape[1:] != shape:
-                return Rejection("obs_dtype" if k in self.rules else "spec",
-                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says {dt.name}{list(shape)}")
-        if len(data) != len(self.required):
-            for k, a in data.items():
-                if k in self.required:
-                    continue
-                want = self.optional.get(k)
-                if want is None:
-                    return Rejection("spec", f"field {k} is not part of an Ape-X transition")
-                if a.dtype != want[0] or a.shape[1:] != want[1]:
-                    return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {want[0].name}{list(want[1])}")
+        two whole-array numpy operations (per-call overhead dominates at CartPole's sizes).
+        ``fields_checked``: the caller already knows the field names, dtypes and shapes match
+        (e.g. they match a storage allocated from a chunk that passed this check); only values
+        are checked then."""
+        if not fields_checked:
+            bad = self.check_fields(data)
+            if bad is not None:
+                return bad
         act = data["action"]
         # int64 read as uint64: a negative action becomes huge, so one max covers both ends
         if act.view(np.uint64).max() >= self._n_actions:
@@ -179,11 +171,33 @@ class ChunkChecker:
             a = data[k]
             flat = a.reshape(-1)
             whole = (a.shape[0] // rows) * low.shape[0]
-            blocks = flat[:whole].reshape(-1, low.shape[0])
             rest = flat[whole:]
-            if ((blocks < low).any() or (blocks > high).any()
-                    or (rest < low[:rest.shape[0]]).any() or (rest > high[:rest.shape[0]]).any()):
+            if whole:  # elementwise min/max across the blocks, then one comparison of a block
+                blocks = flat[:whole].reshape(-1, low.shape[0])
+                if (blocks.min(axis=0) < low).any() or (blocks.max(axis=0) > high).any():
+                    return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+            if (rest < low[:rest.shape[0]]).any() or (rest > high[:rest.shape[0]]).any():
                 return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+        return None
+
+    def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
+        """Field names, dtypes and per-item shapes against the env's spec."""
+        for k, (dt, shape) in self.required.items():
+            a = data.get(k)
+            if a is None:
+                return Rejection("spec", f"field {k} is missing")
+            if a.dtype != dt or a.shape[1:] != shape:
+                return Rejection("obs_dtype" if k in self.rules else "spec",
+                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says {dt.name}{list(shape)}")
+        if len(data) != len(self.required):
+            for k, a in data.items():
+                if k in self.required:
+                    continue
+                want = self.optional.get(k)
+                if want is None:
+                    return Rejection("spec", f"field {k} is not part of an Ape-X transition")
+                if a.dtype != want[0] or a.shape[1:] != want[1]:
+                    return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {want[0].name}{list(want[1])}")
         return None
 
 

@@ -84,6 +84,8 @@ class ReplayService:
         self.checker = make_checker(cfg) if self.rcfg.check_semantics else None
         self.quarantine = Quarantine(self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, self.rcfg.quarantine_s)
         self._quarantine_tokens: dict[str, Any] = {}
+        #: the storage's fields are known to be the env's (set when allocated from a checked chunk)
+        self._spec_vetted = False
         self.rejected_by_source: collections.Counter[str] = collections.Counter()
         self.dropped_quarantined = 0
         self.journal: ReplayLog | None = None
@@ -152,6 +154,8 @@ class ReplayService:
             if self.buffer is None:
                 self.buffer = self._make_buffer(data)
                 self.buffer.start_at(rec.first_key)
+                # a log written without the checks (or for another env) may hold other fields
+                self._spec_vetted = self.checker is not None and self.checker.check_fields(msg.data) is None
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             elif rec.first_key != self.buffer.inserts_total:
                 log.warning("replay log gap: expected key %d, record starts at %d", self.buffer.inserts_total, rec.first_key)
@@ -256,6 +260,7 @@ class ReplayService:
                     self._reject("spec", str(e), good[0][3], locked=True)
                     return 0
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
+                self._spec_vetted = self.checker is not None
             ok = []
             for g in good:
                 why = self._spec_mismatch(g[2])
@@ -266,8 +271,11 @@ class ReplayService:
             if not ok:
                 return 0
             data, prios = self._combine(ok)
+            # every chunk here matches the storage's fields; once those are known to be the env's
+            # (_spec_vetted), only the values need checking
             if self.checker is not None and self.checker.check(
-                    {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD}, prios) is not None:
+                    data if self._spec_vetted else {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD},
+                    prios, fields_checked=self._spec_vetted) is not None:
                 ok = [g for g in ok if self._passes(g)]
                 if not ok:
                     return 0
