@@ -109,7 +109,7 @@ def test_rules_for_images_discrete_and_dicts():
     assert chk.check(data, None).detail.startswith("field next_obs/lidar")
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, deadline=None, derandomize=True)
 @given(row=st.integers(0, 7), action=st.integers(-2**62, 2**62), n=st.integers(0, 255),
        reward=st.floats(width=32, allow_nan=False, allow_infinity=False),
        prio=st.floats(min_value=0, width=32, allow_infinity=False))
