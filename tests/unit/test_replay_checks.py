@@ -162,3 +162,15 @@ def test_bounds_are_checked_in_every_block_and_in_the_rest(shape, b):
         d = {k: v.copy() for k, v in base.items()}
         d["next_obs"].reshape(b, -1)[row, -1] = np.float32(1.0000001)
         assert chk.check(d, None).reason == "obs_bounds", (row, shape)
+
+
+@pytest.mark.parametrize("option, value", [("replay.max_abs_reward", "0"), ("replay.max_priority", "-1"),
+                                           ("replay.quarantine_rejections", "-1"), ("replay.quarantine_s", "0"),
+                                           ("learner.guard_max_bad_updates", "0"), ("a3c.max_grad_norm", "0")])
+def test_new_options_are_validated_with_the_bad_value_named(option, value):
+    from zenrl.common.config import load_config
+    from zenrl.common.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=option.split(".")[1]) as e:
+        load_config(None, [f"{option}={value}"])
+    assert value in str(e.value)
