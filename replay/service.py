@@ -15,7 +15,15 @@ Keys (see :class:`zenrl.common.protocol.Keys`):
 
 The storage is allocated from the spec of the first valid batch (or restored from disk); every
 later batch must match it. Bad input on any key is rejected, counted by reason and logged
-without flooding; the service keeps serving everyone else.
+without flooding; the service keeps serving everyone else. With ``replay.check_semantics``
+(default) chunks are also checked against the run's env spec (:mod:`zenrl.replay.checks`:
+actions, ``n``, observation dtypes and bounds, reward and priority bounds) and rejections are
+counted by source too; a source that keeps failing is quarantined (its chunks dropped unread in
+the callback, a ``quarantine/<actor>`` liveliness token held, both refreshed with the stats).
+
+On stop: the transitions subscriber is undeclared and the callback returns at once, the ingest
+thread inserts what was queued, then the durable log is flushed and the final snapshot written;
+the caller closes the session.
 """
 
 from __future__ import annotations
