@@ -44,9 +44,14 @@ log = logging.getLogger(__name__)
 MIN_BLOCK_STEPS = 16
 
 
+#: Largest finite float32: parameters are loaded as float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 class WeightsFollower:
     """Holds the newest :class:`Weights` seen on the broadcast key and loads them into a
-    network when asked (``maybe_load``), refusing other architectures. Never blocks."""
+    network when asked (``maybe_load``), refusing other architectures and non-finite parameters
+    (NaN/Inf are refused when decoded; float64 values beyond float32 here). Never blocks."""
 
     def __init__(self, node: Node, keys: P.Keys, net: torch.nn.Module, max_bytes: int) -> None:
         self.net = net
@@ -78,6 +83,9 @@ class WeightsFollower:
                 raise ProtocolError("arch", f"weights for {w.arch}, this network is {self.arch}", "arch")
             if w.version <= self.version:
                 return False
+            for k, a in w.params.items():  # float64 beyond float32's range would load as Inf
+                if a.dtype.itemsize > 4 and a.dtype.kind == "f" and a.size and float(np.abs(a).max()) > FLOAT32_MAX:
+                    raise ProtocolError(f"params.{k}", "has values beyond float32's range (would load as Inf)", "nonfinite")
             arrays_to_params(self.net, w.params)
         except (ProtocolError, ValueError) as e:
             self.rejected += 1

@@ -1,5 +1,6 @@
 """Elastic exploration slots: an actor claims the lowest free slot by declaring the liveliness
-token ``slots/<k>/<actor-id>``. Tokens vanish when an actor dies (at once on a crash, after the
+token ``slots/<k>/<actor-id>``. A slot whose holder the replay has quarantined (it holds
+``quarantine/<actor-id>``) counts as free, so a well-behaved actor takes it over. Tokens vanish when an actor dies (at once on a crash, after the
 lease when frozen), so slots are reused; no central service holds the assignment.
 
 Claiming: read the tokens alive now, pick the lowest free slot (the previous one if it is still
@@ -31,19 +32,26 @@ def _holders(node: Node, keys: P.Keys, slot: int | None = None) -> list[tuple[in
     return out
 
 
+def quarantined(node: Node, keys: P.Keys) -> set[str]:
+    """Actor ids the replay drops now (it holds a ``quarantine/<actor>`` token for each)."""
+    return {k.rsplit("/", 1)[-1] for k in node.alive_now(keys.quarantined_all, timeout_s=2.0)}
+
+
 def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, settle_s: float = 0.3,
                attempts: int = 20, seed: int | None = None) -> tuple[int, Any]:
     """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes)."""
     rng = random.Random(seed if seed is not None else actor_id)
     for _ in range(attempts):
-        used = {s for s, a in _holders(node, keys) if a != actor_id}
+        # a quarantined actor's slot counts as free: its data is dropped, so its slot explores nothing
+        bad = quarantined(node, keys)
+        used = {s for s, a in _holders(node, keys) if a != actor_id and a not in bad}
         if previous is not None and previous not in used:
             cand = previous
         else:
             cand = next(i for i in range(len(used) + 1) if i not in used)
         token = node.session.liveliness().declare_token(keys.slot_token(cand, actor_id))
         time.sleep(settle_s)  # let concurrent claims of the same slot become visible
-        holders = sorted(a for _, a in _holders(node, keys, cand))
+        holders = sorted(a for _, a in _holders(node, keys, cand) if a not in bad)
         if not holders or holders[0] == actor_id:
             node._entities.append(token)
             log.info("actor %s holds exploration slot %d", actor_id, cand)

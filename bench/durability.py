@@ -60,10 +60,10 @@ def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray],
     for _ in range(count):
         b = CHUNK
         batch = {
-            "obs": rng.standard_normal((b, 4)).astype(np.float32),
+            "obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),  # inside CartPole's bounds (the replay checks them)
             "action": rng.integers(0, 2, b).astype(np.int64),
             "reward": (rng.random(b) * 3).astype(np.float32),
-            "next_obs": rng.standard_normal((b, 4)).astype(np.float32),
+            "next_obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
             "terminated": rng.random(b) < 0.02,
             "truncated": np.zeros(b, bool),
             "n": np.full(b, 3, np.uint8),

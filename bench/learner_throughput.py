@@ -9,7 +9,10 @@ Measures, in one run and one process (CartPole-v1 network from ``configs/cartpol
                    ``DQNLearner.update``, priorities sent back from the background sender,
                    weights broadcast every ``publish_every_updates``;
   * ``baseline`` - updates/s of the same :class:`DQNLearner` on synthetic batches of the same
-                   layout already in memory (``batch_to_tensors`` + ``update``), nothing sent.
+                   layout already in memory (``batch_to_tensors`` + ``update``), nothing sent;
+  * ``guard``    - CPU time per update with and without the learner's guard (non-finite loss or
+                   gradient skips the step; parameters checked finite before each broadcast):
+                   ``guard_overhead_ratio`` (target <= 1.02).
 
 Rounds alternate (baseline, service, baseline, service, ...); medians are compared:
 ``learner_efficiency`` = median service rate / median baseline rate (target >= 0.9). Rates are
@@ -25,6 +28,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
 
     python bench/learner_throughput.py            # full run (~1.5-2 min)
     python bench/learner_throughput.py --quick    # one short round (~40 s)
+    python bench/learner_throughput.py --guard-only   # the learner guard's cost per update (~35 s)
 """
 
 from __future__ import annotations
@@ -70,10 +74,10 @@ class StatsWatch:
 
 def cartpole_batch(rng: np.random.Generator, b: int) -> dict[str, np.ndarray]:
     return {
-        "obs": rng.standard_normal((b, 4)).astype(np.float32),
+        "obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),  # inside CartPole's bounds (the replay checks them)
         "action": rng.integers(0, 2, b).astype(np.int64),
         "reward": (rng.random(b) * 3).astype(np.float32),
-        "next_obs": rng.standard_normal((b, 4)).astype(np.float32),
+        "next_obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
         "terminated": rng.random(b) < 0.02,
         "truncated": np.zeros(b, bool),
         "n": np.full(b, 3, np.uint8),
@@ -124,6 +128,46 @@ def baseline_rate(cfg: Any, spec: Any, n_actions: int, warmup_s: float, duration
         n += 1
     el, cpu = time.perf_counter() - t0, time.thread_time() - c0
     return {"updates_per_s": n / el, "updates_per_cpu_s": n / cpu, "updates": n, "elapsed_s": el, "cpu_s": cpu}
+
+
+def guard_overhead(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: float) -> dict[str, Any]:
+    """CPU time per update of ``DQNLearner.update`` with the learner's guard (the finite check of
+    loss and gradient norm, plus the parameters' finite check the service makes before each
+    weights broadcast, every ``publish_every_updates``) and without it (the guard's ``accept``
+    replaced by one that always agrees, no parameter check); rounds alternate, in this process.
+    ``guard_overhead_ratio`` = median guarded / median unguarded (target <= 1.02)."""
+    import torch
+
+    from zenrl.common.networks import resolve_device
+    from zenrl.learner.dqn import DQNLearner
+
+    torch.set_num_threads(cfg.learner.torch_threads)
+    learners = {}
+    for guarded in (True, False):
+        torch.manual_seed(cfg.seed)
+        learners[guarded] = DQNLearner(spec, n_actions, cfg.network, cfg.learner, resolve_device(cfg.learner.device))
+    learners[False].guard.accept = lambda _loss, _norm: True
+    rng = np.random.default_rng(2)
+    batches = []
+    for _ in range(8):
+        d = cartpole_batch(rng, BATCH)
+        d["meta/policy_version"] = np.zeros(BATCH, np.int64)
+        batches.append(learners[True].batch_to_tensors(d, (rng.random(BATCH) * 0.9 + 0.1).astype(np.float32)))
+    every = cfg.learner.publish_every_updates
+    per_update: dict[bool, list[float]] = {True: [], False: []}
+    for r in range(rounds):
+        for guarded in ((True, False) if r % 2 == 0 else (False, True)):
+            dqn, n = learners[guarded], 0
+            t0, c0 = time.perf_counter(), time.thread_time()
+            while time.perf_counter() - t0 < round_s:
+                dqn.update(batches[n % 8])
+                n += 1
+                if guarded and n % every == 0 and not dqn.params_finite():
+                    raise RuntimeError("the benchmark's learner diverged")
+            per_update[guarded].append((time.thread_time() - c0) / n * 1e6)
+    on, off = statistics.median(per_update[True]), statistics.median(per_update[False])
+    return {"guard_overhead_ratio": round(on / off, 4), "update_us_guarded": round(on, 1),
+            "update_us_unguarded": round(off, 1), "guard_rounds": rounds, "target_guard_overhead_ratio": 1.02}
 
 
 def make_service(cfg: Any, node: Any, run: str, name: str) -> Any:
@@ -239,6 +283,17 @@ def orchestrate(args: argparse.Namespace) -> int:
     cfg = load_config(CONFIG, [f"learner.batch_size={BATCH}", f"transport.router={ep}", f"run_id={run}",
                                f"runs_dir={tmp / 'runs'}", "learner.log_interval_s=1.0", "learner.device=cpu", *args.set])
     out: dict[str, Any] = {"bench": "learner_throughput", "quick": bool(args.quick), "error": None}
+    if args.guard_only:
+        out["mode"] = "guard_only"
+        try:
+            spec, n_actions = env_shapes(cfg)
+            out.update(guard_overhead(cfg, spec, n_actions, 8, 2.0))
+            log(f"learner guard: {out['update_us_guarded']} vs {out['update_us_unguarded']} us per update, "
+                f"ratio {out['guard_overhead_ratio']}")
+            out.update({"batch_size": BATCH, "torch": torch.__version__, **machine_info(t_start)})
+        except BaseException as e:
+            record_error(out, e)
+        return emit(out)
     router = open_router([ep])
     procs = Procs(tmp)
     node = None
@@ -262,6 +317,9 @@ def orchestrate(args: argparse.Namespace) -> int:
             s = service_rate(cfg, node, run, f"bench-learner-{r}", warmup_s, dur_s, lstats)
             log(f"round {r} ApexLearnerService: {s['updates_per_s']:.1f} updates/s, wait fraction {s['wait_fraction']}")
             svc.append(s)
+        guard = guard_overhead(cfg, spec, n_actions, 2 if args.quick else 6, 1.5)
+        log(f"learner guard: ratio {guard['guard_overhead_ratio']} (CPU per update, guarded / unguarded)")
+        out.update(guard)
         base_med = statistics.median(x["updates_per_s"] for x in base)
         svc_med = statistics.median(x["updates_per_s"] for x in svc)
         eff = svc_med / base_med
@@ -307,6 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round")
     ap.add_argument("--profile", action="store_true", help="profile the learner even if it meets the target")
+    ap.add_argument("--guard-only", action="store_true", help="only the learner guard's cost per update, in process (~35 s)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override (repeatable), e.g. --set learner.requests_in_flight=8")
     args = ap.parse_args(argv)

@@ -11,6 +11,8 @@ separate OS process, all Zenoh clients of that router):
     same BLOCK publisher settings) from 2 publisher processes to a raw Zenoh subscriber process
     that only takes the bytes (``payload.to_bytes()``) and counts, measured at the receiver
     (first to last receipt);
+  * ``checks`` - CPU time per chunk of the service's ingest path (decode, validate, insert) with
+    ``replay.check_semantics`` on and off, in process: ``checks_overhead_ratio`` (target <= 1.05);
   * ``sample`` - batches/s of 512 served by the replay to one client process keeping 4 requests
     in flight (``SamplePrefetcher``), after the ingest rounds filled it.
 
@@ -22,6 +24,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
     python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks
+    python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
 ``--role sampler``.
@@ -93,10 +96,11 @@ def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray],
     for _ in range(count):
         b = CHUNK
         batch = {
-            "obs": rng.standard_normal((b, 4)).astype(np.float32),
+            # inside CartPole's observation bounds, which the replay checks
+            "obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
             "action": rng.integers(0, 2, b).astype(np.int64),
             "reward": rng.random(b).astype(np.float32) * 3,
-            "next_obs": rng.standard_normal((b, 4)).astype(np.float32),
+            "next_obs": rng.uniform(-0.4, 0.4, (b, 4)).astype(np.float32),
             "terminated": rng.random(b) < 0.02,
             "truncated": np.zeros(b, bool),
             "n": np.full(b, 3, np.uint8),
@@ -513,12 +517,57 @@ def inprocess_ingest(duration_s: float) -> dict[str, Any]:
     return {"items_per_s": items / el, "items_per_cpu_s": items / cpu, "us_per_chunk_cpu": cpu / i * 1e6}
 
 
+def checks_overhead(rounds: int, round_s: float) -> dict[str, Any]:
+    """CPU time per chunk of the replay's ingest path (decode, validate, insert; batches of
+    ``replay.ingest_batch_chunks`` = 32 chunks, as the ingest thread does) with the semantic checks
+    on and off, in this process, rounds alternating; ratio = median on / median off."""
+    from zenrl.common.config import load_config
+    from zenrl.replay.service import ReplayService
+
+    svcs = {on: ReplayService(load_config(None, ["replay.capacity=100000", f"replay.check_semantics={str(on).lower()}"]),
+                              None, "benchchk") for on in (True, False)}
+    pool = encoded_pool(200, 64, "pub0")
+    batches = [[(pool[(j * 32 + k) % 64], "zenrl/benchchk/transitions/pub0") for k in range(32)] for j in range(2)]
+    per_chunk: dict[bool, list[float]] = {True: [], False: []}
+    for svc in svcs.values():
+        if svc.ingest_many(batches[0]) != 32 * CHUNK:
+            raise RuntimeError("the benchmark's chunks were rejected")
+    for r in range(rounds):
+        for on in ((True, False) if r % 2 == 0 else (False, True)):
+            svc, n = svcs[on], 0
+            t0, c0 = time.perf_counter(), time.thread_time()
+            while time.perf_counter() - t0 < round_s:
+                svc.ingest_many(batches[n % 2])
+                n += 1
+            per_chunk[on].append((time.thread_time() - c0) / (n * 32) * 1e6)
+    on, off = statistics.median(per_chunk[True]), statistics.median(per_chunk[False])
+    chk = svcs[True].checker
+    d, p = cartpole_batches(201, 1)[0]
+    t0, k = time.perf_counter(), 0
+    while time.perf_counter() - t0 < 0.5:
+        chk.check(d, p)
+        k += 1
+    return {"checks_overhead_ratio": round(on / off, 4), "ingest_us_per_chunk_checked": round(on, 1),
+            "ingest_us_per_chunk_unchecked": round(off, 1), "check_us_per_chunk": round((time.perf_counter() - t0) / k * 1e6, 2),
+            "checks_rounds": rounds, "target_checks_overhead_ratio": 1.05}
+
+
 def orchestrate(args: argparse.Namespace) -> int:
     from zenrl.common import protocol as P
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
 
     t_start = time.perf_counter()
+    if args.checks_only:
+        out = {"bench": "replay_service", "mode": "checks_only", "error": None}
+        try:
+            out.update(checks_overhead(10, 1.0))
+            log(f"semantic checks: {out['ingest_us_per_chunk_checked']} vs {out['ingest_us_per_chunk_unchecked']} "
+                f"us per chunk, ratio {out['checks_overhead_ratio']}")
+            out.update(machine_info(t_start))
+        except BaseException as e:
+            record_error(out, e)
+        return emit(out)
     rounds, duration, sample_s = (1, 2.0, 3.0) if args.quick else (3, 6.0, 8.0)
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -533,6 +582,8 @@ def orchestrate(args: argparse.Namespace) -> int:
         node = Node(ep, 10.0)
         stats = StatsWatch(node, keys)
         log(f"router {ep}, run {run}, logs in {tmp}")
+        chk = checks_overhead(2 if args.quick else 6, 1.0)
+        log(f"semantic checks: ingest CPU per chunk ratio on/off {chk['checks_overhead_ratio']}")
         ref = inprocess_ingest(1.0 if args.quick else 3.0)
         log(f"reference: ReplayService.ingest in process: {ref['items_per_s']:,.0f} items/s")
         procs.start("replay", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
@@ -566,6 +617,7 @@ def orchestrate(args: argparse.Namespace) -> int:
             "raw_zenoh_items_per_s": round(raw_med),
             "inprocess_ingest_items_per_s": round(ref["items_per_s"]),
             "inprocess_ingest_us_per_chunk_cpu": round(ref["us_per_chunk_cpu"], 1),
+            **chk,
             "sample_batches_per_s": round(smp["batches_per_s"], 2),
             "sample_items_per_s": round(smp["items_per_s"]),
             "sample_batch_size": SAMPLE_BATCH,
@@ -669,6 +721,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round of each measurement")
+    ap.add_argument("--checks-only", action="store_true", help="only the semantic checks' cost per chunk, in process (~25 s)")
     ap.add_argument("--role", choices=["pub", "rawsub", "sampler"], help=argparse.SUPPRESS)
     ap.add_argument("--mode", choices=["raw", "client"], default="client", help=argparse.SUPPRESS)
     ap.add_argument("--router", help=argparse.SUPPRESS)

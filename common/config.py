@@ -78,6 +78,13 @@ class ReplayConfig(_Section):
     snapshot_interval_s: float = Field(10.0, gt=0, description="Write a priority snapshot this often.")
     segment_items: Optional[int] = Field(None, ge=1, description="Items per log segment (default capacity / 8); whole segments are deleted once overwritten.")
     drop_after_s: float = Field(2.0, gt=0, lt=5, description="A chunk waiting this long for a full ingest queue is dropped and counted (stays below Zenoh's 5 s BLOCK fuse).")
+    check_semantics: bool = Field(True, description="Check each chunk's meaning against the run's env spec (actions in range, n in 1..actor.n_step, observation dtypes and finite Box bounds, reward and priority bounds); a chunk that fails is rejected and counted by reason and source.")
+    check_obs_bounds: bool = Field(True, description="With check_semantics: also check observations against the env's finite Box bounds (turn off for an env whose observations leave its declared bounds).")
+    max_abs_reward: float = Field(1e6, gt=0, description="With check_semantics: a chunk with an (n-step) reward whose magnitude exceeds this is rejected.")
+    max_priority: float = Field(1e9, gt=0, description="With check_semantics: a chunk with an initial priority above this is rejected.")
+    quarantine_rejections: int = Field(20, ge=0, description="A source (the actor id in the key) with this many rejected chunks within quarantine_window_s has its traffic dropped for quarantine_s; 0 turns quarantine off.")
+    quarantine_window_s: float = Field(10.0, gt=0, description="Window over which a source's rejected chunks are counted for quarantine.")
+    quarantine_s: float = Field(60.0, gt=0, description="How long a quarantined source's chunks are dropped unread.")
 
 
 class ActorConfig(_Section):
@@ -127,6 +134,8 @@ class LearnerConfig(_Section):
     keep_checkpoints: int = Field(3, ge=1, description="Keep the newest K checkpoints.")
     log_interval_s: float = Field(2.0, gt=0, description="How often the learner logs and publishes stats.")
 
+    guard_max_bad_updates: int = Field(10, ge=1, description="Non-finite loss or gradients skip the update; after this many skipped in a row the learner rolls back to its last good checkpoint (or to the last good parameters it published).")
+    guard_log_interval_s: float = Field(10.0, gt=0, description="Skipped updates are logged at most once per this many seconds (with a count).")
     @model_validator(mode="after")
     def _check(self) -> "LearnerConfig":
         if self.batch_size * self.batches_per_request > MAX_SAMPLE_BATCH:
@@ -153,6 +162,7 @@ class A3CConfig(_Section):
     lr_final_fraction: float = Field(0.1, ge=0, le=1, description="Final lr as a fraction of learner.lr when lr_anneal_updates is set.")
     max_staleness: int = Field(8, ge=0, description="Drop gradients computed from parameters more than this many versions old.")
     broadcast_every: int = Field(1, ge=1, description="Broadcast parameters every K applied gradients.")
+    max_grad_norm: float = Field(1e6, gt=0, description="A worker's gradient whose norm (before clipping) exceeds this is rejected and counted, not clipped and applied: no honest worker sends one, and clipping would still apply a full-size step in its direction.")
     rmsprop_alpha: float = Field(0.99, gt=0, lt=1, description="RMSProp smoothing constant.")
     rmsprop_eps: float = Field(1e-5, gt=0, description="RMSProp epsilon.")
 

@@ -72,6 +72,7 @@ class Keys:
     ``stats/<role>/<id>``            put          :class:`Stats`            every process
     ``alive/<role>/<id>``            liveliness   (token)                   every process
     ``slots/<k>/<actor>``            liveliness   (token)                   actor owning slot k
+    ``quarantine/<actor>``           liveliness   (token)                   replay, while it drops <actor>
     ===============================  ===========  =========================================
     """
 
@@ -143,6 +144,14 @@ class Keys:
         if not isinstance(slot, int) or slot < 0:
             raise ProtocolError("slot", f"{slot!r} must be a non-negative integer", "field")
         return f"{self.prefix}/slots/{slot}/{check_name('actor_id', actor_id)}"
+
+    def quarantined(self, actor_id: str) -> str:
+        """Liveliness token the replay holds while it drops ``actor_id``'s chunks."""
+        return f"{self.prefix}/quarantine/{check_name('actor_id', actor_id)}"
+
+    @property
+    def quarantined_all(self) -> str:
+        return f"{self.prefix}/quarantine/*"
 
     def slot_holders(self, slot: int | None = None) -> str:
         return f"{self.prefix}/slots/{'*' if slot is None else int(slot)}/*"

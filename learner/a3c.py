@@ -12,8 +12,8 @@ the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the
 Which gradients are applied (:class:`GradientApplier`, pure, unit-tested):
 
 * names and shapes must match the model's parameters (else rejected, counted by reason);
-* NaN/Inf never get this far (rejected when decoded); a gradient whose norm overflows is
-  rejected; if the parameters ever became non-finite after a step they are restored from the
+* NaN/Inf never get this far (rejected when decoded); a gradient whose norm overflows, or
+  exceeds ``a3c.max_grad_norm`` (absurd for any honest worker), is rejected; if the parameters ever became non-finite after a step they are restored from the
   last broadcast and the optimizer state is reset;
 * a gradient taken at params ``version`` v is dropped (``stale_dropped``) if the current version
   is more than ``a3c.max_staleness`` ahead of v, and dropped (``unknown_version_dropped``) if v is
@@ -111,6 +111,11 @@ class GradientApplier:
         if not np.isfinite(norm):
             self.opt.zero_grad(set_to_none=True)
             raise ProtocolError("grads", f"gradient norm is {norm} (overflow)", "nonfinite")
+        if norm > self.acfg.max_grad_norm:
+            # clipping would still take a full-size step in the direction a faulty worker chose
+            self.opt.zero_grad(set_to_none=True)
+            raise ProtocolError("grads", f"gradient norm {norm:.3g} exceeds a3c.max_grad_norm {self.acfg.max_grad_norm:.3g}",
+                                "grad_norm")
         lr = self.current_lr()
         for group in self.opt.param_groups:
             group["lr"] = lr
@@ -207,6 +212,8 @@ class A3CLearnerService(LearnerBase):
         log.info("resumed from %s: %d updates, params version %d", path, self.applier.updates, self.applier.version)
 
     def save(self) -> Path:
+        if not self.applier.params_finite():  # cannot persist after apply(); kept as a last guard
+            self.applier._restore_good()
         p = save_checkpoint(self.ckpt_dir, self.training_state(), self.applier.updates, self.cfg.learner.keep_checkpoints)
         log.info("checkpoint %s", p)
         return p
@@ -220,6 +227,8 @@ class A3CLearnerService(LearnerBase):
             self.queue_dropped += 1
 
     def _encode_weights(self) -> bytes:
+        if not self.applier.params_finite():  # never broadcast non-finite parameters
+            self.applier._restore_good()
         version = self.versions.claim(self.applier.next_version())
         return P.Weights(version=version, learner_id=self.id, arch=self.arch, updates=self.applier.updates,
                          params=params_to_arrays(self.net)).encode(self.cfg.transport.max_message_bytes)

@@ -21,6 +21,7 @@ from torch.nn import functional as F
 from zenrl.common.config import LearnerConfig, NetworkConfig
 from zenrl.common.networks import QNetwork, rename_prefix, to_tensors
 from zenrl.common.specs import ArraySpec
+from zenrl.learner.guard import UpdateGuard, params_finite
 
 
 def double_dqn_target(q_next_online: torch.Tensor, q_next_target: torch.Tensor, reward: torch.Tensor,
@@ -60,22 +61,31 @@ class DQNLearner:
                                                                fused=self._fused)
         else:
             self.opt = torch.optim.RMSprop(self.online.parameters(), lr=cfg.lr, alpha=0.95, eps=0.01, centered=True)
+        self.n_actions = int(n_actions)
         self.updates = 0
+        self.guard = UpdateGuard(cfg.guard_max_bad_updates, cfg.guard_log_interval_s)
 
     def beta(self) -> float:
         frac = min(1.0, self.updates / self.cfg.beta_anneal_updates)
         return self.cfg.beta0 + frac * (1.0 - self.cfg.beta0)
 
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
+        """Tensors for :meth:`update`. Raises ValueError for an action index the network does not
+        have (``gather`` would crash the step, or assert on CUDA and poison the context)."""
+        a = data["action"]
+        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
+            raise ValueError(f"batch has action {int(a.max()) if int(a.max()) >= self.n_actions else int(a.min())} "
+                             f"outside 0..{self.n_actions - 1}")
         t = to_tensors({k: v for k, v in data.items() if k in ("action", "reward", "n", "terminated")}, self.device)
         t["obs"] = to_tensors({k: data[k] for k in self.obs_spec}, self.device)
         t["next_obs"] = to_tensors(rename_prefix(data, "next_obs", "obs"), self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
         return t
 
-    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray]:
+    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
         """One step on a batch from :meth:`batch_to_tensors`; returns (metrics, new priorities
-        float32[B] = |td|)."""
+        float32[B] = |td|). A non-finite loss or gradient skips the step (see :attr:`guard`):
+        metrics are then empty and priorities ``None``."""
         with torch.no_grad():
             q_next_online = self.online(b["next_obs"])
             q_next_target = self.target(b["next_obs"])
@@ -85,12 +95,21 @@ class DQNLearner:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        # the metrics' .item() calls, made before the step: the guard costs no extra device sync
+        loss_v, norm_v = float(loss.item()), float(grad_norm.item())
+        if not self.guard.accept(loss_v, norm_v):
+            self.opt.zero_grad(set_to_none=True)
+            return {}, None
         self.opt.step()
         self.updates += 1
         if self.updates % self.cfg.target_update_period == 0:
             self.target.load_state_dict(self.online.state_dict())
-        metrics = {"loss": float(loss.item()), "q_mean": float(q_sa.mean().item()), "grad_norm": float(grad_norm.item())}
+        metrics = {"loss": loss_v, "q_mean": float(q_sa.mean().item()), "grad_norm": norm_v}
         return metrics, td_abs.cpu().numpy().astype(np.float32)
+
+    def params_finite(self) -> bool:
+        """Whether the online and target networks are finite (checked before publish or save)."""
+        return params_finite(self.online.parameters()) and params_finite(self.target.parameters())
 
     # -- training state ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -191,12 +191,44 @@ class ApexLearnerService(LearnerBase):
         torch.set_rng_state(state["torch_rng"])
         log.info("resumed from %s: %d updates, weights version %d", path, self.dqn.updates, self.version)
 
-    def save(self) -> Path:
+    def save(self) -> Path | None:
+        """Checkpoint, unless the parameters are non-finite (then roll back instead)."""
+        if not self.dqn.params_finite():
+            self.dqn.guard.unpublishable += 1
+            log.error("parameters are non-finite: no checkpoint written")
+            self.rollback()
+            return None
         p = save_checkpoint(self.ckpt_dir, self.training_state(), self.dqn.updates, self.cfg.learner.keep_checkpoints)
         log.info("checkpoint %s", p)
         return p
 
+    def rollback(self) -> None:
+        """Back to the newest readable checkpoint (never one of non-finite parameters: none is
+        written); without one, the optimizer state is reset and training goes on."""
+        try:
+            state, path = load_latest(self.ckpt_dir)
+            check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
+        except CheckpointError as e:
+            log.error("%d updates in a row skipped or parameters non-finite, and no checkpoint to roll back to "
+                      "(%s); resetting the optimizer state", self.dqn.guard.in_a_row, e)
+            self.dqn.opt.state.clear()
+        else:
+            self.dqn.load_state_dict(state["learner"])
+            log.error("rolled back to %s (update %d) after %d skipped updates in a row", path, self.dqn.updates,
+                      self.dqn.guard.in_a_row)
+        self.dqn.guard.rolled_back()
+
     # -- weights -----------------------------------------------------------------------------
+    def _publishable_weights(self) -> bytes | None:
+        """Encoded weights of a new version, or ``None`` (and a rollback) if the parameters are
+        non-finite: those are never broadcast."""
+        if not self.dqn.params_finite():
+            self.dqn.guard.unpublishable += 1
+            log.error("parameters are non-finite: weights not published")
+            self.rollback()
+            return None
+        return self._encode_weights()
+
     def _encode_weights(self) -> bytes:
         self.version = self.versions.claim(self.version + 1)
         return P.Weights(version=self.version, learner_id=self.id, arch=self.arch, updates=self.dqn.updates,
@@ -233,6 +265,11 @@ class ApexLearnerService(LearnerBase):
                 wait_s += time.monotonic() - t0
                 if s is not None:
                     m, prios = self.dqn.update(s.prepared)
+                    if prios is None:  # skipped by the guard (non-finite loss or gradient)
+                        if self.dqn.guard.rollback_due:
+                            self.rollback()
+                        s = None
+                if s is not None:
                     sender.send_priorities(prio_pub, s.keys, prios)
                     self.transitions_consumed += len(prios)
                     upd_rate.add(1)
@@ -244,8 +281,10 @@ class ApexLearnerService(LearnerBase):
                     if pv is not None:
                         lag_sum += float(self.version - pv.mean())
                     if self.dqn.updates % cfg.publish_every_updates == 0:
-                        self._latest_weights = self._encode_weights()
-                        sender.send(w_pub, self._latest_weights)
+                        w = self._publishable_weights()
+                        if w is not None:
+                            self._latest_weights = w
+                            sender.send(w_pub, w)
                 now = time.monotonic()
                 if now - last_log >= cfg.log_interval_s:
                     vals = {k: v / max(n_acc, 1) for k, v in acc.items()}
@@ -254,7 +293,8 @@ class ApexLearnerService(LearnerBase):
                                  "beta": self.dqn.beta(), "wait_fraction": wait_s / max(now - last_log, 1e-9),
                                  "transitions_consumed": self.transitions_consumed, "not_ready": pf.not_ready,
                                  "sample_timeouts": pf.timeouts, "sample_errors": pf.errors,
-                                 "send_dropped": sender.dropped, "send_failed": sender.failed})
+                                 "send_dropped": sender.dropped, "send_failed": sender.failed,
+                                 **self.dqn.guard.values()})
                     stats_pub.put(P.Stats(role="learner", id=self.id, time=time.time(), values=vals).encode())
                     metrics.write("learner", self.dqn.updates, vals)
                     if n_acc:

@@ -15,11 +15,20 @@ Keys (see :class:`zenrl.common.protocol.Keys`):
 
 The storage is allocated from the spec of the first valid batch (or restored from disk); every
 later batch must match it. Bad input on any key is rejected, counted by reason and logged
-without flooding; the service keeps serving everyone else.
+without flooding; the service keeps serving everyone else. With ``replay.check_semantics``
+(default) chunks are also checked against the run's env spec (:mod:`zenrl.replay.checks`:
+actions, ``n``, observation dtypes and bounds, reward and priority bounds) and rejections are
+counted by source too; a source that keeps failing is quarantined (its chunks dropped unread in
+the callback, a ``quarantine/<actor>`` liveliness token held, both refreshed with the stats).
+
+On stop: the transitions subscriber is undeclared and the callback returns at once, the ingest
+thread inserts what was queued, then the durable log is flushed and the final snapshot written;
+the caller closes the session.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import threading
@@ -32,15 +41,20 @@ import zenoh
 
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
+from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.specs import spec_of_batch
 from zenrl.common.transport import Node
 from zenrl.replay.buffer import InMemoryReplay
+from zenrl.replay.checks import ChunkChecker, Quarantine
 from zenrl.replay.durable import ReplayLog
 from zenrl.replay.frames import FrameReplay
 
 log = logging.getLogger(__name__)
+
+#: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
+TOP_SOURCES = 20
 
 #: Column the service adds to every item: the weight version the actor acted with (policy lag).
 POLICY_VERSION_FIELD = "meta/policy_version"
@@ -76,6 +90,13 @@ class ReplayService:
         self._threads: list[threading.Thread] = []
         self._stats_pub = None
         self._spec_sig: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+        self.checker = make_checker(cfg) if self.rcfg.check_semantics else None
+        self.quarantine = Quarantine(self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, self.rcfg.quarantine_s)
+        self._quarantine_tokens: dict[str, Any] = {}
+        #: the storage's fields are known to be the env's (set when allocated from a checked chunk)
+        self._spec_vetted = False
+        self.rejected_by_source: collections.Counter[str] = collections.Counter()
+        self.dropped_quarantined = 0
         self.journal: ReplayLog | None = None
         self.restored_items = 0
         self._last_snapshot = time.monotonic()
@@ -150,6 +171,8 @@ class ReplayService:
             if self.buffer is None:
                 self.buffer = self._make_buffer(data)
                 self.buffer.start_at(rec.first_key)
+                # a log written without the checks (or for another env) may hold other fields
+                self._spec_vetted = self.checker is not None and self.checker.check_fields(msg.data) is None
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
             elif rec.first_key != self.buffer.inserts_total:
                 log.warning("replay log gap: expected key %d, record starts at %d", self.buffer.inserts_total, rec.first_key)
@@ -175,6 +198,9 @@ class ReplayService:
 
     # -- ingest -----------------------------------------------------------------------------
     def _on_transitions(self, key: str, payload: bytes) -> None:
+        if self.quarantine.active and self.quarantine.drop(source_of(key)):
+            self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
+            return
         # wait for queue space in short slices so that a shutdown is noticed at once, not after
         # drop_after_s per chunk (a full queue's consumer may be the one stopping)
         deadline = time.monotonic() + self.rcfg.drop_after_s
@@ -222,57 +248,67 @@ class ReplayService:
         return self.ingest_many([(payload, source)])
 
     def ingest_many(self, items: list[tuple[bytes, str]]) -> int:
-        """Decode and validate each ``(payload, source)``; insert the valid ones as one batch.
-        A bad chunk is rejected and counted alone. Returns the items inserted."""
-        good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray]]] = []
+        """Decode and validate each ``(payload, source)`` (form, then meaning); insert the valid
+        ones as one batch. A bad chunk is rejected and counted alone, by reason and by source.
+        Returns the items inserted.
+
+        The semantic checks run once on the combined batch (the insert needs it anyway), so their
+        per-call cost is paid once per batch, not per chunk; only when the batch fails are its
+        chunks checked one by one to find and reject the bad ones."""
+        good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]] = []
         framed = 0
         for payload, source in items:
             try:
                 msg = P.TransitionBatch.decode(payload, self.max_bytes)
             except ProtocolError as e:
-                self.rejects.reject(e.reason, str(e), source)
+                self._reject(e.reason, str(e), source)
                 continue
             if msg.frames is not None:  # frame mode: chunk by chunk, in arrival order
-                framed += self._ingest_frames(payload, msg)
+                framed += self._ingest_frames(payload, msg, source)
                 continue
-            good.append((payload, msg, self._with_meta(msg)))
+            good.append((payload, msg, self._with_meta(msg), source))
         if not good:
             return framed
         with self._lock:
             if self.buffer is None:
+                if self.checker is not None:  # the first chunk defines the storage: check it alone
+                    good = [g for g in good if self._passes(g)]
+                    if not good:
+                        return framed
                 try:
                     self.buffer = self._make_buffer(good[0][2])
                 except (ValueError, SpecMismatch) as e:
-                    self.rejects.reject("spec", str(e), items[0][1])
+                    self._reject("spec", str(e), good[0][3], locked=True)
                     return framed
                 self._spec_sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in self.buffer.spec.items()}
+                self._spec_vetted = self.checker is not None
             ok = []
-            for payload, msg, data in good:
-                why = self._spec_mismatch(data)
+            for g in good:
+                why = self._spec_mismatch(g[2])
                 if why:
-                    self.rejects.reject("spec", why, msg.actor_id)
+                    self._reject("spec", why, g[3], locked=True)
                 else:
-                    ok.append((payload, msg, data))
+                    ok.append(g)
             if not ok:
                 return framed
-            if len(ok) == 1:
-                data, prios = ok[0][2], ok[0][1].priorities
-            else:
-                data = {k: np.concatenate([d[k] for _, _, d in ok]) for k in ok[0][2]}
-                if all(m.priorities is not None for _, m, _ in ok):
-                    prios = np.concatenate([m.priorities for _, m, _ in ok])
-                else:  # chunks without priorities take the running max, as on their own
-                    mp = np.float32(self.buffer.max_priority)
-                    prios = np.concatenate([m.priorities if m.priorities is not None else np.full(m.batch_size, mp, np.float32)
-                                            for _, m, _ in ok])
+            data, prios = self._combine(ok)
+            # every chunk here matches the storage's fields; once those are known to be the env's
+            # (_spec_vetted), only the values need checking
+            if self.checker is not None and self.checker.check(
+                    data if self._spec_vetted else {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD},
+                    prios, fields_checked=self._spec_vetted) is not None:
+                ok = [g for g in ok if self._passes(g)]
+                if not ok:
+                    return framed
+                data, prios = self._combine(ok)
             try:
                 keys = self.buffer.insert(data, prios)
             except (SpecMismatch, ValueError) as e:  # validated above; kept as a last guard
-                self.rejects.reject("invalid", str(e), ok[0][1].actor_id)
+                self.rejects.reject("invalid", str(e), ok[0][3])
                 return framed
             if self.journal is not None:
                 off = 0
-                for payload, msg, _ in ok:
+                for payload, msg, _, _ in ok:
                     self.journal.append(int(keys[off]), msg.batch_size, payload)
                     off += msg.batch_size
                 if self.journal.maybe_flush():
@@ -283,13 +319,18 @@ class ReplayService:
         self.inserted.add(n)
         return n + framed
 
-    def _ingest_frames(self, payload: bytes, msg: P.TransitionBatch) -> int:
-        """Insert one frame-mode chunk (and log it: later chunks may name its frames)."""
+    def _ingest_frames(self, payload: bytes, msg: P.TransitionBatch, source: str) -> int:
+        """Check and insert one frame-mode chunk (and log it: later chunks may name its frames)."""
         with self._lock:
+            if self.checker is not None:
+                why = self.checker.check_scalars(msg.data, msg.priorities) or self.checker.check_frames(msg.frames)
+                if why is not None:
+                    self._reject(why.reason, why.detail, source, locked=True)
+                    return 0
             try:
-                res = self._insert_frames(msg)
+                res = self._insert_frames(msg, source=source)
             except (ValueError, SpecMismatch) as e:
-                self.rejects.reject("spec", str(e), msg.actor_id)
+                self._reject("spec", str(e), source, locked=True)
                 return 0
             if res is None:
                 return 0
@@ -306,7 +347,7 @@ class ReplayService:
         self.inserted.add(int(res.keys.size))
         return int(res.keys.size)
 
-    def _insert_frames(self, msg: P.TransitionBatch, first_key: int | None = None):
+    def _insert_frames(self, msg: P.TransitionBatch, first_key: int | None = None, source: str = ""):
         """Frame-mode insert (caller holds the lock); allocates a FrameReplay on the first
         chunk. Returns the InsertResult, or None when rejected."""
         refs = msg.frame_refs()
@@ -322,9 +363,50 @@ class ReplayService:
             log.info("replay storage allocated (frame mode): %d items, %d frames, %d bytes per item",
                      self.buffer.capacity, self.buffer.frame_capacity, self.buffer.bytes_per_item)
         elif not isinstance(self.buffer, FrameReplay):
-            self.rejects.reject("spec", "a frame-mode chunk, but this replay stores full observations", msg.actor_id)
+            self._reject("spec", "a frame-mode chunk, but this replay stores full observations", source or msg.actor_id,
+                         locked=True)
             return None
         return self.buffer.insert(msg.actor_id, msg.frame_base, msg.frames, batch, refs, msg.priorities)
+
+    def _combine(self, ok: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]]
+                 ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """One batch from several chunks (caller holds the lock)."""
+        if len(ok) == 1:
+            return ok[0][2], ok[0][1].priorities
+        data = {k: np.concatenate([g[2][k] for g in ok]) for k in ok[0][2]}
+        if all(g[1].priorities is not None for g in ok):
+            return data, np.concatenate([g[1].priorities for g in ok])
+        # chunks without priorities take the running max, as on their own
+        mp = np.float32(self.buffer.max_priority)
+        return data, np.concatenate([g[1].priorities if g[1].priorities is not None
+                                     else np.full(g[1].batch_size, mp, np.float32) for g in ok])
+
+    def _passes(self, g: tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]) -> bool:
+        """Semantic check of one chunk; a failure is rejected and counted (caller holds the lock)."""
+        why = self.checker.check(g[1].data, g[1].priorities)
+        if why is None:
+            return True
+        self._reject(why.reason, why.detail, g[3], locked=True)
+        return False
+
+    def _reject(self, reason: str, detail: str, source: str, locked: bool = False) -> None:
+        """Count a rejected chunk by reason and by source (the actor id in its key); a source
+        that keeps sending bad chunks is quarantined."""
+        src = source_of(source)
+        self.rejects.reject(reason, detail, source)
+        if locked:
+            self._count_source(src, reason)
+        else:
+            with self._lock:
+                self._count_source(src, reason)
+
+    def _count_source(self, src: str, reason: str) -> None:
+        if src not in self.rejected_by_source and len(self.rejected_by_source) >= 10_000:
+            return  # bounded memory however many ids a sender invents (the totals still count)
+        self.rejected_by_source[src] += 1
+        if self.quarantine.record(src, reason):
+            log.warning("source %s quarantined for %.0f s: %d rejected chunks within %.0f s (last: %s)", src,
+                        self.rcfg.quarantine_s, self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, reason)
 
     def _spec_mismatch(self, data: dict[str, np.ndarray]) -> str:
         if isinstance(self.buffer, FrameReplay):
@@ -358,6 +440,10 @@ class ReplayService:
             msg = P.PriorityUpdate.decode(payload, self.max_bytes)
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), key)
+            return
+        if self.checker is not None and msg.priorities.size and float(msg.priorities.max()) > self.rcfg.max_priority:
+            self.rejects.reject("priority_bound", f"priority update {float(msg.priorities.max()):.3g} exceeds "
+                                f"replay.max_priority {self.rcfg.max_priority:.3g}", key)
             return
         with self._lock:
             if self.buffer is not None:
@@ -426,13 +512,58 @@ class ReplayService:
                       "log_torn_records": self.journal.torn_records,
                       "durable_through": self.journal.durable_through})
         v.update(self.rejects.as_values())
+        with self._lock:
+            for src, n in self.rejected_by_source.most_common(TOP_SOURCES):
+                v[f"rejected_from/{src}"] = n
+            v["quarantined"] = len(self.quarantine.active)
+            v["quarantined_sources"] = self.quarantine.describe()
+            v["quarantines_total"] = self.quarantine.total
+        v["dropped_quarantined"] = self.dropped_quarantined
         return v
 
+    def update_quarantine(self) -> None:
+        """Hold a liveliness token ``quarantine/<source>`` while a source is quarantined, so
+        that slot claims (see zenrl.actor.slots) treat its exploration slot as free."""
+        with self._lock:
+            released = self.quarantine.expire()
+            active = list(self.quarantine.active)
+        for src in released:
+            tok = self._quarantine_tokens.pop(src, None)
+            log.info("source %s released from quarantine", src)
+            if tok is not None:
+                try:
+                    tok.undeclare()
+                except zenoh.ZError as e:
+                    log.debug("undeclaring the quarantine token of %s failed: %s", src, e)
+        for src in active:
+            if src not in self._quarantine_tokens:
+                try:
+                    self._quarantine_tokens[src] = self.node.session.liveliness().declare_token(self.keys.quarantined(src))
+                except (zenoh.ZError, P.ProtocolError) as e:
+                    log.warning("could not declare the quarantine token of %s: %s", src, e)
+
     def publish_stats(self) -> None:
+        self.update_quarantine()
         vals = self.stats_values()
         if self._stats_pub is not None:
             self._stats_pub.put(P.Stats(role="replay", id=self.id, time=time.time(), values=vals).encode())
         log.debug("replay stats %s", vals)
+
+
+def source_of(key: str) -> str:
+    """The sender a ``transitions/<actor>`` key names (its last segment)."""
+    return key.rsplit("/", 1)[-1]
+
+
+def make_checker(cfg: RunConfig) -> ChunkChecker:
+    """The semantic checks for this run's env, built from the config as the learner builds its
+    network (an env is made once to read its spaces, then closed)."""
+    env = make_env(cfg.env)
+    try:
+        return ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
+                                        cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds)
+    finally:
+        env.close()
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:

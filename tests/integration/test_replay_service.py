@@ -28,7 +28,9 @@ def test_ingest_sample_update_and_reject(router, run_id, procs):
     keys = P.Keys(run_id)
     procs.zenrl("replay", ["replay", "--router", router, "--run-id", run_id,
                            "--set", "replay.min_size=1500", "--set", "replay.stats_interval_s=0.3",
-                           "--set", "replay.capacity=5000"])
+                           "--set", "replay.capacity=5000",
+                           # the publishers tag rewards with their seed (1e6 apart)
+                           "--set", "replay.max_abs_reward=1e8"])
     with Node(router, 10.0) as node:
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 0.5), 60, "the replay's liveliness token")
         stats = _stats(node, keys)

@@ -23,7 +23,7 @@ def _replay_args(router, run_id, log_dir):
             "--set", "replay.stats_interval_s=0.2", "--set", "replay.capacity=2000000",
             # a short queue is saturated quickly: the callback then waits drop_after_s per chunk
             "--set", "replay.queue_size=4", "--set", "replay.ingest_batch_chunks=1",
-            "--set", "replay.drop_after_s=2.0", "--set", "replay.snapshot_interval_s=60"]
+            "--set", "replay.drop_after_s=2.0", "--set", "replay.max_abs_reward=1e12", "--set", "replay.snapshot_interval_s=60"]
 
 
 def _stats_reader(node, keys):

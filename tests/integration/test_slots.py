@@ -41,3 +41,34 @@ def test_elastic_ladder_covers_the_range_for_any_n():
         pos = np.sort(expo / 7.0)
         assert pos[0] == 0.0
         assert np.max(np.diff(np.r_[pos, 1.0])) <= 2.0 / len(pos) + 1e-9   # no big gap anywhere
+
+
+def test_a_quarantined_actors_slot_goes_to_a_newcomer(router, run_id, procs):
+    """The replay quarantines an actor that keeps sending bad chunks; its slot then counts as
+    free, so the next actor to claim takes it although the bad actor is still connected."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    keys = P.Keys(run_id)
+    procs.zenrl("replay", ["replay", "--router", router, "--run-id", run_id,
+                           "--set", "replay.stats_interval_s=0.2", "--set", "replay.quarantine_rejections=3"])
+
+    def start(name):
+        return procs.start(name, ["tests/integration/procs.py", "claim", "--router", router, "--run", run_id, "--actor", name])
+
+    start("bad")
+    assert wait_until(lambda: _slot(procs, "bad") is not None and _slot(procs, "bad") + 1, 60, "bad's slot") - 1 == 0
+    with Node(router, 10.0) as node:
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 0.5), 60, "the replay's liveliness token")
+        pub = node.publisher(keys.transitions("bad"))
+        b = 4
+        chunk = {"obs": np.zeros((b, 4), np.float32), "action": np.full(b, 9), "reward": np.zeros(b, np.float32),
+                 "next_obs": np.zeros((b, 4), np.float32), "terminated": np.zeros(b, bool), "n": np.ones(b, np.uint8)}
+
+        def quarantined():
+            pub.put(P.TransitionBatch("bad", 0, 0, chunk).encode())  # action 9 in a 2-action env
+            return node.alive_now(keys.quarantined("bad"), 0.5)
+
+        wait_until(quarantined, 30, "the replay to quarantine 'bad'", interval_s=0.2)
+        start("good")
+        assert wait_until(lambda: _slot(procs, "good") is not None and _slot(procs, "good") + 1, 60, "good's slot") - 1 == 0

@@ -356,3 +356,17 @@ def test_orthogonal_init_starts_near_uniform(tmp_path):
     plain = ActorCritic({"obs": ArraySpec((4,), "float32")}, 3, _cfg(tmp_path, **{"network.orthogonal_init": False}).network)
     plain.requires_grad_(False)
     assert float(plain.trunk[0].bias.abs().max()) > 0.0
+
+
+def test_absurd_gradient_norm_rejected_not_clipped(tmp_path):
+    ap, net = _applier(tmp_path, **{"a3c.max_grad_norm": 1e3})
+    ap.next_version()
+    snap = _snapshot(net)
+    n_params = sum(p.numel() for p in net.parameters())
+    # finite, below the overflow, but a norm of 1e4 * sqrt(n) no honest worker sends
+    with pytest.raises(ProtocolError, match="exceeds a3c.max_grad_norm") as e:
+        ap.apply(P.Gradients.decode(_grad_msg(net, 1, scale=1e4).encode()))
+    assert e.value.reason == "grad_norm" and n_params > 1
+    assert _same(net, snap) and ap.updates == 0 and all(p.grad is None for p in net.parameters())
+    # an ordinary one still applies
+    assert ap.apply(_grad_msg(net, 1, scale=1e-3))[0] == APPLIED and not _same(net, snap)

@@ -10,8 +10,8 @@ from zenrl.replay.service import ReplayService
 
 def _payload(i, b=16, seed=0):
     rng = np.random.default_rng(seed + i)
-    data = {"obs": rng.random((b, 4), dtype=np.float32), "action": rng.integers(0, 2, b),
-            "reward": np.full(b, i, np.float32), "next_obs": rng.random((b, 4), dtype=np.float32),
+    data = {"obs": rng.random((b, 4), dtype=np.float32) * 0.4, "action": rng.integers(0, 2, b),
+            "reward": np.full(b, i, np.float32), "next_obs": rng.random((b, 4), dtype=np.float32) * 0.4,
             "terminated": np.zeros(b, bool), "n": np.full(b, 3, np.uint8)}
     return P.TransitionBatch("a0", i, i, data, rng.random(b).astype(np.float32) + 0.1).encode()
 

@@ -46,7 +46,9 @@ def _stream(k, steps, seed=0, E=2, n=3):
 
 
 def _service(tmp_path=None, **over):
-    sets = {"capacity": 500, "min_size": 1, **over}
+    # synthetic 3x3 frames match no registered env: the env checks are tested with a checker
+    # of their spec below
+    sets = {"capacity": 500, "min_size": 1, "check_semantics": False, **over}
     if tmp_path is not None:
         sets.update({"durable": True, "segment_items": 50, "log_dir": str(tmp_path / "log")})
     return ReplayService(load_config(None, [f"replay.{k}={v}" for k, v in sets.items()], environ={}), node=None, run_id="r")
@@ -110,3 +112,29 @@ def test_bad_frame_chunks_are_rejected_alone():
     n = svc.ingest(_framed_payload(pairs[2][1], 2))
     assert n < len(pairs[2][0]) and svc.buffer.unresolved == len(pairs[2][0]) - n
     assert svc.ingest(_framed_payload(pairs[3][1], 3)) == len(pairs[3][0])
+
+
+def test_frame_chunks_are_checked_against_the_env_spec():
+    """Frame mode is no way around the semantic checks: actions, n, rewards and the frames'
+    dtype and shape are checked before anything is stored, and a bad chunk costs only itself."""
+    from zenrl.replay.checks import ChunkChecker, ObsRule
+
+    svc = _service()
+    svc.checker = ChunkChecker({"obs": ObsRule("uint8", (3, 3))}, n_actions=2, n_step=3, max_abs_reward=1e6,
+                               max_priority=1e9)
+    stream = _stream(0, 40)
+    good = [bf for _, bf in stream]
+    assert svc.ingest(_framed_payload(good[0], 0)) == good[0].data["action"].shape[0]
+    bad_action = good[1].data.copy()
+    bad_action["action"] = np.full_like(good[1].data["action"], 7)
+    bad_n = good[1].data.copy()
+    bad_n["n"] = np.full_like(good[1].data["n"], 9)
+    for data, frames, reason in ((bad_action, good[1].frames, "action_range"), (bad_n, good[1].frames, "n_range"),
+                                 (good[1].data, {"obs": good[1].frames["obs"].astype(np.float32)}, "fields")):
+        payload = P.TransitionBatch("evil", 1, 1, data, good[1].priorities, frames=frames,
+                                    frame_base=good[1].frame_base).encode()
+        assert svc.ingest(payload, "zenrl/r/transitions/evil") == 0
+        assert svc.rejects.counts[reason] >= 1, (reason, dict(svc.rejects.counts))
+    assert svc.rejected_by_source["evil"] == 3
+    # the honest actor's next chunk still goes in
+    assert svc.ingest(_framed_payload(good[1], 1)) == good[1].data["action"].shape[0]

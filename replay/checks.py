@@ -1,0 +1,304 @@
+"""What a transition chunk must *mean* before the replay stores it, and who gets quarantined for
+sending chunks that do not. Pure (no zenoh, no env), unit-tested without a network.
+
+The protocol layer already rejects what is malformed (bad containers, dtypes, shapes, NaN/Inf).
+A well-formed chunk can still wreck a run: an action index the network does not have crashes the
+learner on ``gather`` (and stays in the replay at high priority, so the restarted learner dies
+again); a finite reward of 3e38 makes the loss ``inf``. :class:`ChunkChecker` holds the run's
+env spec (observation fields with their dtypes and finite ``Box`` bounds, the number of actions,
+``n_step``) and the configured bounds on rewards and priorities, and names the first rule a
+chunk breaks. :class:`Quarantine` drops a source's traffic for a while once it keeps breaking
+rules.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+#: Fields every Ape-X chunk carries besides the observations (dtype of one item, shape ()).
+SCALAR_FIELDS = {"action": "int64", "reward": "float32", "n": "uint8", "terminated": "bool"}
+#: Fields an Ape-X chunk may carry besides those (shape ()).
+OPTIONAL_FIELDS = {"truncated": "bool"}
+
+
+#: Elements per block of tiled observation bounds (see ChunkChecker).
+BOUNDS_BLOCK_ELEMENTS = 4096
+
+
+def _as_bound(b: np.ndarray, dtype: str, direction: int) -> np.ndarray:
+    """A bound (float64, +-inf where unbounded) in the data's dtype, flattened, rounded outward
+    so that no value inside the float64 bound is rejected."""
+    b = b.reshape(-1)
+    if np.dtype(dtype).kind == "f":
+        out = b.astype(dtype)
+        widen = (out < b) if direction > 0 else (out > b)
+        out[widen] = np.nextafter(out[widen], np.inf if direction > 0 else -np.inf)
+        return out
+    info = np.iinfo(dtype)
+    return np.clip(np.floor(b) if direction > 0 else np.ceil(b), info.min, info.max).astype(dtype)
+
+
+@dataclass(frozen=True)
+class ObsRule:
+    """One observation field: dtype and shape of one item; ``low``/``high`` float64 arrays of
+    that shape where a bound is finite (``None`` when no element has a finite bound, or the
+    dtype's own range already enforces it, as for uint8 images in [0, 255])."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why a chunk was refused: ``reason`` (a short counter name) and a one-line ``detail``."""
+
+    reason: str
+    detail: str
+
+
+def obs_rules_from_space(space: Any, prefix: str = "obs") -> dict[str, ObsRule]:
+    """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those),
+    with the dtypes zenrl ships them in (uint8 Box stays uint8, other Box float32, Discrete int64)."""
+    import gymnasium as gym  # the replay's callers have it; this module stays importable without
+
+    if isinstance(space, gym.spaces.Dict):
+        out: dict[str, ObsRule] = {}
+        for k, sub in space.spaces.items():
+            out.update(obs_rules_from_space(sub, f"{prefix}/{k}"))
+        return out
+    if isinstance(space, gym.spaces.Discrete):
+        start = int(space.start)
+        return {prefix: ObsRule("int64", (), np.array(start, np.float64), np.array(start + int(space.n) - 1, np.float64))}
+    if isinstance(space, gym.spaces.Box):
+        dtype = "uint8" if space.dtype == np.uint8 else "float32"
+        low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape)
+        high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape)
+        if dtype == "uint8" and low.min() <= 0 and high.max() >= 255 and (low <= 0).all() and (high >= 255).all():
+            return {prefix: ObsRule(dtype, tuple(space.shape))}
+        if not (np.isfinite(low).any() or np.isfinite(high).any()):
+            return {prefix: ObsRule(dtype, tuple(space.shape))}
+        return {prefix: ObsRule(dtype, tuple(space.shape), low.copy(), high.copy())}
+    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+
+
+class ChunkChecker:
+    """Checks one chunk's ``data`` (flat ``{name: array[B, ...]}``) and ``priorities``
+    (float32[B] or None) against the run's env spec and bounds.
+
+    ``obs_rules``: the observation fields (``obs`` or ``obs/<key>``); ``next_obs*`` follow the
+    same rules. ``n_actions``: actions must be in ``0..n_actions-1``; ``n_step``: ``n`` in
+    ``1..n_step``; ``max_abs_reward``: ``|reward|`` bound; ``max_priority``: priority bound
+    (priorities are already known finite and non-negative); ``check_obs_bounds`` False skips
+    the observation bounds (dtypes and shapes are still checked)."""
+
+    def __init__(self, obs_rules: Mapping[str, ObsRule], n_actions: int, n_step: int,
+                 max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True) -> None:
+        if n_actions < 1 or n_step < 1:
+            raise ValueError(f"n_actions and n_step must be >= 1, got {n_actions} and {n_step}")
+        self.n_actions = int(n_actions)
+        self.n_step = int(n_step)
+        self.max_abs_reward = float(max_abs_reward)
+        self.max_priority = float(max_priority)
+        self.rules: dict[str, ObsRule] = {}
+        for name, r in obs_rules.items():
+            self.rules[name] = r
+            self.rules["next_" + name] = r
+        # np.dtype objects, compared by identity-or-equality: ``dtype.name`` costs ~1.6 us a call
+        self.required = {**{k: (np.dtype(r.dtype), r.shape) for k, r in self.rules.items()},
+                         **{k: (np.dtype(dt), ()) for k, dt in SCALAR_FIELDS.items()}}
+        self.optional = {k: (np.dtype(dt), ()) for k, dt in OPTIONAL_FIELDS.items()}
+        # bounded fields: (name, rows R, low, high) with the item's bounds tiled R times, so that a
+        # batch is compared as contiguous blocks of R items (broadcasting [B, D] against [D]
+        # runs numpy's inner loop once per row: ~70x slower for CartPole's D = 4)
+        self._bounded = []
+        for k, r in self.rules.items():
+            if r.low is None or not check_obs_bounds:
+                continue
+            d = max(1, int(np.prod(r.shape, dtype=np.int64)))
+            rows = max(1, BOUNDS_BLOCK_ELEMENTS // d)
+            self._bounded.append((k, rows, np.tile(_as_bound(r.low, r.dtype, -1), rows),
+                                  np.tile(_as_bound(r.high, r.dtype, 1), rows)))
+        self._n_actions = np.uint64(self.n_actions)
+        self._n_step = np.uint8(min(self.n_step, 255))
+
+    @classmethod
+    def from_spaces(cls, observation_space: Any, action_space: Any, n_step: int, max_abs_reward: float,
+                    max_priority: float, check_obs_bounds: bool = True) -> "ChunkChecker":
+        import gymnasium as gym
+
+        if not isinstance(action_space, gym.spaces.Discrete):
+            raise ValueError(f"zenrl's replay checks need a Discrete action space, got {action_space}")
+        return cls(obs_rules_from_space(observation_space), int(action_space.n), n_step, max_abs_reward, max_priority,
+                   check_obs_bounds)
+
+    def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None,
+              fields_checked: bool = False) -> Rejection | None:
+        """``None`` if the chunk may be stored, else the first rule it breaks. Each rule is one or
+        two whole-array numpy operations (per-call overhead dominates at CartPole's sizes).
+        ``fields_checked``: the caller already knows the field names, dtypes and shapes match
+        (e.g. they match a storage allocated from a chunk that passed this check); only values
+        are checked then."""
+        if not fields_checked:
+            bad = self.check_fields(data)
+            if bad is not None:
+                return bad
+        bad = self.check_scalars(data, priorities)
+        if bad is not None:
+            return bad
+        return self._check_bounds(data)
+
+    def check_scalars(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None) -> Rejection | None:
+        """The action, ``n``, reward and priority rules alone (frame-mode chunks, whose
+        observations are frame ids, are checked with this and :meth:`check_frames`)."""
+        for k, (dt, _shape) in self.required.items():
+            if k in SCALAR_FIELDS and (k not in data or data[k].dtype != dt or data[k].ndim != 1):
+                return Rejection("fields", f"field {k} must be {dt.name}[B]")
+        act = data["action"]
+        # int64 read as uint64: a negative action becomes huge, so one max covers both ends
+        if act.view(np.uint64).max() >= self._n_actions:
+            bad = int(act.max()) if int(act.max()) >= self.n_actions else int(act.min())
+            return Rejection("action_range", f"action {bad} is outside 0..{self.n_actions - 1}")
+        n = data["n"]
+        # uint8: n - 1 wraps 0 to 255, so one max covers both ends
+        if (n - np.uint8(1)).max() >= self._n_step:
+            bad = int(n.min()) if int(n.min()) < 1 else int(n.max())
+            return Rejection("n_range", f"n {bad} is outside 1..{self.n_step}")
+        r = data["reward"]
+        m = float(np.abs(r).max())
+        if m > self.max_abs_reward:
+            return Rejection("reward_bound", f"|reward| {m:.3g} exceeds replay.max_abs_reward {self.max_abs_reward:.3g}")
+        if priorities is not None:
+            p = float(priorities.max())
+            if p > self.max_priority:
+                return Rejection("priority_bound", f"priority {p:.3g} exceeds replay.max_priority {self.max_priority:.3g}")
+        return None
+
+    def check_frames(self, frames: Mapping[str, np.ndarray]) -> Rejection | None:
+        """Frame-mode frames (``{obs field: array[F, ...]}``): each table is an observation
+        field of the env, of its dtype, one observation (or one frame of a stacked one) per row,
+        inside the field's bounds."""
+        for k, a in frames.items():
+            rule = self.rules.get(k)
+            if rule is None or k.startswith("next_"):
+                return Rejection("fields", f"frame table {k} is not an observation field of the env ({sorted(r for r in self.rules if not r.startswith('next_'))})")
+            if a.dtype != np.dtype(rule.dtype) or a.shape[1:] not in (tuple(rule.shape), tuple(rule.shape[1:])):
+                return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(a.shape[1:])}, the env's {k} is "
+                                           f"{rule.dtype}{list(rule.shape)} (or one frame of it)")
+            if rule.low is not None and a.size and a.shape[1:] == tuple(rule.shape):
+                low, high = rule.low.reshape(rule.shape), rule.high.reshape(rule.shape)
+                if (a < low).any() or (a > high).any():
+                    return Rejection("obs_bounds", f"frames of {k} have values outside the env's observation bounds")
+        return None
+
+    def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
+        for k, rows, low, high in self._bounded:
+            a = data[k]
+            flat = a.reshape(-1)
+            whole = (a.shape[0] // rows) * low.shape[0]
+            rest = flat[whole:]
+            if whole:  # elementwise min/max across the blocks, then one comparison of a block
+                blocks = flat[:whole].reshape(-1, low.shape[0])
+                if (blocks.min(axis=0) < low).any() or (blocks.max(axis=0) > high).any():
+                    return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+            if (rest < low[:rest.shape[0]]).any() or (rest > high[:rest.shape[0]]).any():
+                return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+        return None
+
+    def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
+        """Field names, dtypes and per-item shapes against the env's spec."""
+        for k, (dt, shape) in self.required.items():
+            a = data.get(k)
+            if a is None:
+                return Rejection("spec", f"field {k} is missing")
+            if a.dtype != dt or a.shape[1:] != shape:
+                return Rejection("obs_dtype" if k in self.rules else "spec",
+                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says {dt.name}{list(shape)}")
+        if len(data) != len(self.required):
+            for k, a in data.items():
+                if k in self.required:
+                    continue
+                want = self.optional.get(k)
+                if want is None:
+                    return Rejection("spec", f"field {k} is not part of an Ape-X transition")
+                if a.dtype != want[0] or a.shape[1:] != want[1]:
+                    return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {want[0].name}{list(want[1])}")
+        return None
+
+
+@dataclass
+class QuarantineEntry:
+    until: float
+    reason: str
+    count: int = 0
+
+
+class Quarantine:
+    """A source with ``rejections`` rejected chunks within ``window_s`` seconds has its traffic
+    dropped for ``duration_s`` seconds. ``clock`` is injectable for tests. Not thread-safe:
+    the replay calls it under its own lock (``is_quarantined`` reads a dict, safe without it)."""
+
+    def __init__(self, rejections: int, window_s: float, duration_s: float,
+                 clock: Callable[[], float] = time.monotonic, max_sources: int = 10_000) -> None:
+        self.rejections = rejections
+        self.window_s = window_s
+        self.duration_s = duration_s
+        self.clock = clock
+        self.max_sources = max_sources
+        self._recent: dict[str, collections.deque[float]] = {}
+        self.active: dict[str, QuarantineEntry] = {}
+        self.total = 0  #: quarantines imposed so far
+
+    def record(self, source: str, reason: str) -> bool:
+        """Count one rejection of ``source``; returns True if this put it in quarantine."""
+        now = self.clock()
+        if self.rejections <= 0 or self.is_quarantined(source, now):
+            return False
+        q = self._recent.get(source)
+        if q is None:
+            if len(self._recent) >= self.max_sources:  # bounded memory whatever ids are invented
+                self._recent.pop(next(iter(self._recent)))
+            q = self._recent[source] = collections.deque()
+        q.append(now)
+        while q and q[0] < now - self.window_s:
+            q.popleft()
+        if len(q) < self.rejections:
+            return False
+        del self._recent[source]
+        self.active[source] = QuarantineEntry(now + self.duration_s, reason)
+        self.total += 1
+        return True
+
+    def is_quarantined(self, source: str, now: float | None = None) -> bool:
+        e = self.active.get(source)
+        if e is None:
+            return False
+        return (self.clock() if now is None else now) < e.until
+
+    def drop(self, source: str) -> bool:
+        """Count and say whether a message from ``source`` is to be dropped now."""
+        e = self.active.get(source)
+        if e is None or self.clock() >= e.until:
+            return False
+        e.count += 1
+        return True
+
+    def expire(self) -> list[str]:
+        """Forget quarantines that are over; returns the sources released."""
+        now = self.clock()
+        done = [s for s, e in self.active.items() if now >= e.until]
+        for s in done:
+            del self.active[s]
+        return done
+
+    def describe(self) -> str:
+        """One line for status displays: ``source (reason, N dropped, Ts left); ...``."""
+        now = self.clock()
+        return "; ".join(f"{s} ({e.reason}, {e.count} dropped, {max(0.0, e.until - now):.0f} s left)"
+                         for s, e in sorted(self.active.items()) if now < e.until)
