@@ -91,7 +91,7 @@ def check(role: str, ident: str | None, prefix: str | None, stats_within_s: floa
         return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m zenrl.health", description=__doc__.split("\n\n")[0])
     p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator"), help="the process's role")
     p.add_argument("--id", dest="ident", help="its exact id ({hostname} is replaced)")
@@ -100,7 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--unreachable-ok", action="store_true", help="pass when the router cannot be reached (liveness)")
     p.add_argument("--config", "-c", help="YAML config file (else the environment alone)")
     p.add_argument("--connect-timeout-s", type=float, default=3.0, help="how long to wait for the router")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     try:
         out = check(args.role, args.ident, args.id_prefix, args.stats_within_s, args.unreachable_ok, args.config,
