@@ -3,7 +3,7 @@ central router, the replay, the learner and the evaluator on one; a host router 
 on each of the two others, each host linked to the central one through a WAN relay (25 ms each
 way, 100 Mbit/s) that counts the bytes.
 
-* data flows from every host's actors, and CartPole is solved (~25 s here);
+* data flows from every host's actors, and CartPole is solved;
 * a weights broadcast crosses each host's link once, not once per actor behind it;
 * killing one host's router cuts only that host's actors: the other host's actors and the
   learner go on, the cut-off actors stay up and resume (same processes, their step counters
