@@ -42,8 +42,10 @@ def router_config_file(src: Path, out: Path) -> Path:
 
 
 class Watch:
-    """What the test process sees at the central router: weights broadcasts (count, bytes),
-    each actor's latest stats and when they came, eval returns, learner stats."""
+    """What the test process sees at the central router: weights broadcasts (count, bytes,
+    newest version), each actor's latest stats and when they came, each actor's weights lag
+    (newest version here minus the version the actor acts with, when its stats arrive: an upper
+    bound, as the stats took the link's delay to come), eval returns, learner stats."""
 
     def __init__(self, node: Any, keys: Any) -> None:
         from zenrl.common import protocol as P
@@ -52,6 +54,8 @@ class Watch:
         self.lock = threading.Lock()
         self.weights_n = 0
         self.weights_bytes = 0
+        self.weights_version = -1
+        self.actor_lags: list[int] = []
         self.actors: dict[str, tuple[float, dict]] = {}
         self.learner: dict = {}
         self.evals: list[float] = []
@@ -60,15 +64,19 @@ class Watch:
         node.subscribe(keys.eval, self._on_eval)
 
     def _on_weights(self, _key: str, payload: bytes) -> None:
+        version = self._P.Weights.decode(payload).version
         with self.lock:
             self.weights_n += 1
             self.weights_bytes += len(payload)
+            self.weights_version = max(self.weights_version, version)
 
     def _on_stats(self, _key: str, payload: bytes) -> None:
         m = self._P.Stats.decode(payload)
         with self.lock:
             if m.role == "actor":
                 self.actors[m.id] = (time.monotonic(), dict(m.values))
+                if self.weights_version >= 0 and m.values.get("policy_version", -1) >= 0:
+                    self.actor_lags.append(self.weights_version - int(m.values["policy_version"]))
             elif m.role == "learner":
                 self.learner = dict(m.values)
 
