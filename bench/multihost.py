@@ -14,7 +14,9 @@ After a warm-up (every actor reporting, the learner updating), each arm measures
 actors' counters), the learner's policy lag (its stats: learner version minus the version that
 acted, per sampled transition, in versions) and the actors' weights lag (newest weights
 version at the central host minus the version an actor acts with, when its stats arrive there:
-an upper bound, as the stats crossed the link too). It also reports the bytes down each
+an upper bound, as the stats crossed the link too). Each rate is also given per CPU second
+of the processes that produce it (the machine may be shared: a drop in steps/s with the same
+steps per CPU second is CPU taken by others, not the delay). It also reports the bytes down each
 host link per byte of weights broadcast (one copy per host: ~1; one per actor would be >= 2).
 
 The last stdout line is one JSON object with ``updates_ratio_vs_no_delay`` and
@@ -65,6 +67,8 @@ def arm(name: str, delay_ms: float, args: argparse.Namespace) -> dict:
         s0 = {i: w.actor(i)[1]["env_steps"] for i in ids}
         n0, b0 = w.weights()
         r0 = {h: hosts.relay(h)["down"] for h in ("a", "b")}
+        c0 = {i: hosts.cpu_s(f"actor-{i}") for i in ids}
+        cl0 = hosts.cpu_s("learner")
         lags = []
         with w.lock:
             k0 = len(w.actor_lags)
@@ -77,6 +81,8 @@ def arm(name: str, delay_ms: float, args: argparse.Namespace) -> dict:
         u1 = w.learner["updates"]
         s1 = {i: w.actor(i)[1]["env_steps"] for i in ids}
         n1, b1 = w.weights()
+        actor_cpu = sum(hosts.cpu_s(f"actor-{i}") - c0[i] for i in ids)
+        learner_cpu = hosts.cpu_s("learner") - cl0
         per_host = {h: (hosts.relay(h)["down"] - r0[h]) / max(b1 - b0, 1) for h in ("a", "b")}
         if hosts.dead():
             raise RuntimeError(f"{hosts.dead()} died during the measurement")
@@ -85,6 +91,10 @@ def arm(name: str, delay_ms: float, args: argparse.Namespace) -> dict:
             "seconds": round(dt, 1),
             "updates_per_s": round((u1 - u0) / dt, 1),
             "env_steps_per_s": round(sum(s1[i] - s0[i] for i in ids) / dt, 1),
+            # per CPU second: what the delay costs apart from the CPU the shared machine gave
+            "env_steps_per_actor_cpu_s": round(sum(s1[i] - s0[i] for i in ids) / max(actor_cpu, 1e-9), 1),
+            "updates_per_learner_cpu_s": round((u1 - u0) / max(learner_cpu, 1e-9), 2),
+            "actor_cpu_share": round(actor_cpu / dt, 2),
             "policy_lag_versions": round(statistics.fmean(lags), 2),
             "actor_weights_lag_versions": round(statistics.fmean(actor_lags), 2),
             "weights_broadcasts": n1 - n0,
@@ -123,6 +133,8 @@ def main() -> int:
             "delay": slow,
             "updates_ratio_vs_no_delay": round(slow["updates_per_s"] / base["updates_per_s"], 3),
             "env_steps_ratio_vs_no_delay": round(slow["env_steps_per_s"] / base["env_steps_per_s"], 3),
+            "env_steps_per_cpu_ratio_vs_no_delay": round(slow["env_steps_per_actor_cpu_s"] / base["env_steps_per_actor_cpu_s"], 3),
+            "updates_per_cpu_ratio_vs_no_delay": round(slow["updates_per_learner_cpu_s"] / base["updates_per_learner_cpu_s"], 3),
             "policy_lag_versions": {"no_delay": base["policy_lag_versions"], "delay": slow["policy_lag_versions"]},
             "actor_weights_lag_versions": {"no_delay": base["actor_weights_lag_versions"],
                                            "delay": slow["actor_weights_lag_versions"]},

@@ -14,6 +14,7 @@ itself watches the run through a Unix socket of the central router (no network o
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -163,6 +164,11 @@ class ThreeHosts:
         for h in ("a", "b"):
             for ident in self.actor_ids(h):
                 self._zenrl(f"actor-{ident}", h, ["actor", "--id", ident, *self.role_args(local)])
+        deadline = time.monotonic() + 60
+        while not self.sock.exists():  # the central router is up (else Zenoh logs each retry)
+            if time.monotonic() > deadline or self.procs["router-central"].poll() is not None:
+                raise RuntimeError(f"the central router did not come up: {self.log('router-central')}")
+            time.sleep(0.05)
         self.node = Node(f"unixsock-stream/{self.sock}", 30.0)
         self.watch = Watch(self.node, P.Keys(self.run_id))
         return self
@@ -170,6 +176,12 @@ class ThreeHosts:
     def relay(self, host: str) -> dict:
         p = self.tmp / f"relay-{host}.json"
         return json.loads(p.read_text()) if p.exists() else {"up": 0, "down": 0, "connections": 0, "open": 0}
+
+    def cpu_s(self, name: str) -> float:
+        """CPU seconds (user + system) used so far by process ``name`` (``ip netns exec``
+        execs the command, so the pid is the process's own)."""
+        fields = Path(f"/proc/{self.procs[name].pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
     def dead(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() is not None]
