@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -112,7 +113,10 @@ class ThreeHosts:
     # -- processes ----------------------------------------------------------------------------
     def _start(self, name: str, host: str, argv: list[str]) -> subprocess.Popen:
         log = open(self.tmp / f"{name}.log", "ab")
-        p = subprocess.Popen(self.net.cmd(host, [sys.executable, *argv]), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+        # PYTHONFAULTHANDLER: a process that hangs can be made to print every thread's stack
+        # (SIGABRT; see dump_stacks)
+        p = subprocess.Popen(self.net.cmd(host, [sys.executable, *argv]), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+                             env=dict(os.environ, PYTHONFAULTHANDLER="1"))
         self.procs[name] = p
         return p
 
@@ -182,6 +186,19 @@ class ThreeHosts:
         execs the command, so the pid is the process's own)."""
         fields = Path(f"/proc/{self.procs[name].pid}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def dump_stacks(self, names: list[str]) -> str:
+        """Make ``names`` print every thread's stack into their logs (SIGABRT with
+        PYTHONFAULTHANDLER; they die of it) and return the logs' tails: for a diagnosis."""
+        for n in names:
+            if self.procs[n].poll() is None:
+                os.kill(self.procs[n].pid, signal.SIGABRT)
+        for n in names:
+            try:
+                self.procs[n].wait(10)
+            except subprocess.TimeoutExpired:
+                pass
+        return "\n".join(f"===== {n}\n{self.log(n)}" for n in names)
 
     def dead(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() is not None]

@@ -59,7 +59,11 @@ def _all_actors_report(hosts) -> None:
         assert not hosts.dead(), {n: hosts.log(n) for n in hosts.dead()}
         return all(_steps(hosts, i) > 0 and w.actor(i)[1].get("policy_version", -1) >= 0 for i in everyone)
 
-    wait_until(all_report, 90, "stats (env steps, weights) from every actor of both hosts", 0.2)
+    try:
+        wait_until(all_report, 90, "stats (env steps, weights) from every actor of both hosts", 0.2)
+    except AssertionError as e:
+        silent = [n for n in hosts.procs if n in ("learner", "replay") or n.startswith("actor-")]
+        raise AssertionError(f"{e}; seen: { {i: w.actor(i)[1] for i in everyone} }\n{hosts.dump_stacks(silent)}") from None
 
 
 def test_three_hosts_broadcast_once_per_host_and_survive_a_host_router(three_hosts):
