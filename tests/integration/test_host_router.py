@@ -150,3 +150,33 @@ def test_router_connect_flag_replaces_config_endpoints(tmp_path):
     bad.write_text("{ mode: ")
     with pytest.raises(TransportError, match="bad.json5"):
         open_router([host], str(bad), replace_listen=True)
+
+
+def test_host_router_acl_is_the_central_one_for_local_clients():
+    """host-router-secure.json5 repeats the central router's per-role rules (for the clients on
+    its host): they must not drift apart. It adds only the link to the central router, named by
+    the central router's id; the central router adds only the host routers' policy."""
+    import zenoh
+
+    def load(name: str) -> tuple[dict, zenoh.Config]:
+        cfg = zenoh.Config.from_file(str(ZENOH_DIR / name))
+        return json.loads(cfg.get_json("access_control")), cfg
+
+    central, central_cfg = load("router-secure.json5")
+    host, host_cfg = load("host-router-secure.json5")
+    assert host["enabled"] and host["default_permission"] == "deny"
+    assert [r for r in host["rules"] if r["id"] != "upstream-all"] == central["rules"]
+    assert [s for s in host["subjects"] if s["id"] != "central-router"] == \
+        [s for s in central["subjects"] if s["id"] != "host-routers"]
+    assert [p for p in host["policies"] if p["id"] != "central-router"] == \
+        [p for p in central["policies"] if p["id"] != "host-router"]
+    upstream = next(s for s in host["subjects"] if s["id"] == "central-router")
+    assert upstream["zids"] == [json.loads(central_cfg.get_json("id"))]
+    # the host router's own login is a user of the central router, and that user's policy
+    # allows no weights, priorities or sample answers
+    users = dict(line.split(":", 1) for line in (ZENOH_DIR / "users.txt").read_text().split())
+    auth = json.loads(host_cfg.get_json("transport/auth/usrpwd"))
+    assert users[auth["user"]] == auth["password"]
+    subject = next(s["id"] for s in central["subjects"] if auth["user"] in (s.get("usernames") or []))
+    rules = {r for p in central["policies"] if subject in p["subjects"] for r in p["rules"]}
+    assert not rules & {"learner-publish", "learner-serve-declare", "replay-serve-declare"}
