@@ -103,12 +103,17 @@ def _nest(path: str, value: Any) -> dict[str, Any]:
     return out
 
 
-def router_config(listen: Iterable[str], extra: dict[str, Any] | None = None) -> zenoh.Config:
+def router_config(listen: Iterable[str], extra: dict[str, Any] | None = None,
+                  connect: Iterable[str] = ()) -> zenoh.Config:
+    """Router-mode config listening on ``listen``. ``connect``: other routers to link to (a host
+    router names the central one), so that clients of either reach every other client."""
     doc: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}},
     }
+    if connect:
+        doc["connect"] = {"endpoints": list(connect)}
     _merge(doc, extra or {})
     return _config(doc)
 
@@ -121,15 +126,33 @@ def _merge(dst: dict[str, Any], src: dict[str, Any]) -> None:
             dst[k] = v
 
 
-def open_router(listen: Iterable[str] = (DEFAULT_ROUTER,), config_file: str | None = None) -> zenoh.Session:
-    """Open an in-process Zenoh router (for ``zenrl run`` and tests). With ``config_file`` the
-    router is configured from that JSON5 file (e.g. ``deploy/zenoh/router.json5``)."""
+def open_router(listen: Iterable[str] = (DEFAULT_ROUTER,), config_file: str | None = None,
+                connect: Iterable[str] = (), replace_listen: bool = False) -> zenoh.Session:
+    """Open an in-process Zenoh router (for ``zenrl run``, ``zenrl router`` and tests).
+
+    With ``config_file`` the router is configured from that JSON5 file (e.g.
+    ``deploy/zenoh/router.json5``) and ``listen`` is ignored unless ``replace_listen``.
+    ``connect`` (if not empty) names other routers to link to: a host router names the central
+    one. A router retries its ``connect`` endpoints by itself, so a host router may start before
+    the router it links to, and relinks when that one restarts."""
     init_zenoh_logging()
-    cfg = zenoh.Config.from_file(config_file) if config_file else router_config(listen)
+    listen, connect = list(listen), list(connect)
+    if config_file:
+        try:
+            cfg = zenoh.Config.from_file(config_file)
+            if replace_listen:
+                cfg.insert_json5("listen/endpoints", json.dumps(listen))
+            if connect:
+                cfg.insert_json5("connect/endpoints", json.dumps(connect))
+        except zenoh.ZError as e:
+            raise TransportError(f"router config {config_file!r} is invalid: {e}") from e
+    else:
+        cfg = router_config(listen, connect=connect)
     try:
         return zenoh.open(cfg)
     except zenoh.ZError as e:
-        raise TransportError(f"could not start a Zenoh router on {list(listen)}: {e}") from e
+        where = config_file if config_file and not replace_listen else listen
+        raise TransportError(f"could not start a Zenoh router on {where} (connect: {connect or 'none'}): {e}") from e
 
 
 def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,

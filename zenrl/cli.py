@@ -135,8 +135,10 @@ def cmd_router(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "router")
     stop = threading.Event()
     install_stop_signals(stop)
-    session = open_router(args.listen or ["tcp/0.0.0.0:7447"], args.router_config)
-    log.info("router up, listening on %s", args.router_config or args.listen)
+    listen = args.listen or ["tcp/0.0.0.0:7447"]
+    session = open_router(listen, args.router_config, args.connect or (), replace_listen=bool(args.listen))
+    log.info("router up, listening on %s, linking to %s", args.listen or args.router_config or listen,
+             args.connect or "no other router")
     try:
         stop.wait()
     finally:
@@ -334,7 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
     s.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")
-    s.add_argument("--router-config", help="JSON5 router config file")
+    s.add_argument("--connect", action="append",
+                   help="another router to link to (repeatable): a host router names the central one, e.g. tcp/central:7447")
+    s.add_argument("--router-config", help="JSON5 router config file (--listen / --connect replace its endpoints)")
     s.add_argument("--log-level", default="INFO")
     s.set_defaults(func=cmd_router)
 

