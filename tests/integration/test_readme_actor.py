@@ -1,4 +1,4 @@
-"""The README's minimal third-party actor (plain zenoh + msgpack + numpy) really feeds a replay."""
+"""docs/protocol.md's minimal third-party actor (plain zenoh + msgpack + numpy) really feeds a replay."""
 
 import re
 import subprocess
@@ -14,7 +14,7 @@ pytestmark = pytest.mark.integration
 
 
 def test_readme_actor_snippet(router, run_id, procs, tmp_path):
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "protocol.md").read_text()
     block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "transitions/my-actor" in b)
     code = block.replace("tcp/127.0.0.1:7447", router).replace("zenrl/exp1/", f"zenrl/{run_id}/")
     script = tmp_path / "third_party_actor.py"

@@ -321,6 +321,8 @@ class Launcher:
             if live is not None:
                 live.update(self._table())
                 live.stop()
+            elif self.cfg.progress:  # the final counters, however short the run
+                log.info("progress %s", json.dumps(self.progress.status_line()))
 
     def _table(self):
         return render_table(self.run_id, self.progress.status_line(), self.stop_reason)
