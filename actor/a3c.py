@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -188,7 +189,7 @@ class A3CWorker:
     ``publisher``, ``subscribe_latest``, ``query``, ``token``)."""
 
     def __init__(self, cfg: RunConfig, node: Any, run_id: str, worker_id: str, slot: int) -> None:
-        from zenrl.actor.service import WeightsFollower  # network-facing; imported late so the pure part needs no Zenoh
+        from zenrl.actor.weights import WeightsFollower  # network-facing; imported late so the pure part needs no Zenoh
 
         self.cfg = cfg
         self.node = node
@@ -308,3 +309,16 @@ class A3CWorker:
         if self._metrics is not None:
             self._metrics.write(f"worker{self.slot}", self.env_steps, vals)
         stats_pub.put(P.Stats(role="actor", id=self.id, time=time.time(), values=vals).encode())
+
+
+def run_a3c_worker(cfg: RunConfig, node: Any, run_id: str, worker_id: str, slot: int, num_slots: int | None,
+                   stop: threading.Event) -> None:
+    """The A3C half of ``zenrl actor`` (:data:`zenrl.common.algorithms.A3C`): a worker whose own
+    loss and value stats also go to the run's metrics."""
+    from zenrl.common.metrics import MetricsWriter
+
+    metrics = MetricsWriter(Path(cfg.runs_dir) / run_id)
+    try:
+        A3CWorker(cfg, node, run_id, worker_id, slot).run(stop, metrics=metrics)
+    finally:
+        metrics.close()

@@ -13,11 +13,12 @@ import numpy as np
 import torch
 
 from zenrl.actor.batch_env import EnvBatch
-from zenrl.actor.service import WeightsFollower
+from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
+from zenrl.common.algorithms import algorithm
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
-from zenrl.common.networks import ActorCritic, NumpyQ, QNetwork, num_actions, obs_spec, set_compute_threads
+from zenrl.common.networks import NumpyQ, num_actions, obs_spec, set_compute_threads
 from zenrl.common.policy_io import greedy_actions, sampled_actions
 from zenrl.common.transport import Node
 
@@ -66,8 +67,7 @@ def play_episodes(net: torch.nn.Module, envs: EnvBatch, seed: int, epsilon: floa
 def build_policy_net(cfg: RunConfig, envs: EnvBatch) -> torch.nn.Module:
     spec = obs_spec(envs.single_observation_space)
     n = num_actions(envs.single_action_space)
-    cls = ActorCritic if cfg.algo == "a3c" else QNetwork
-    return cls(spec, n, cfg.network).eval()
+    return algorithm(cfg.algo).policy_network(spec, n, cfg.network).eval()
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event) -> None:

@@ -18,7 +18,6 @@ import re
 import socket
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,12 +27,12 @@ from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.nstep import Block, NStepBlocks
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.slots import claim_slot
+from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
+from zenrl.common.algorithms import algorithm
 from zenrl.common.config import RunConfig
-from zenrl.common.errors import ProtocolError, RemoteTimeout
 from zenrl.common.exploration import EpsilonGreedy, elastic_env_epsilons, env_epsilons
-from zenrl.common.networks import (NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, num_actions,
-                                   obs_spec, set_compute_threads, to_tensors)
+from zenrl.common.networks import NumpyQ, QNetwork, num_actions, obs_spec, set_compute_threads, to_tensors
 from zenrl.common.policy_io import wrap_selfplay
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
@@ -43,56 +42,6 @@ log = logging.getLogger(__name__)
 #: fewest batched steps per n-step block (actor/nstep.py)
 MIN_BLOCK_STEPS = 16
 
-
-#: Largest finite float32: parameters are loaded as float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
-
-
-class WeightsFollower:
-    """Holds the newest :class:`Weights` seen on the broadcast key and loads them into a
-    network when asked (``maybe_load``), refusing other architectures and non-finite parameters
-    (NaN/Inf are refused when decoded; float64 values beyond float32 here). Never blocks."""
-
-    def __init__(self, node: Node, keys: P.Keys, net: torch.nn.Module, max_bytes: int) -> None:
-        self.net = net
-        self.arch = arch_fingerprint(net)
-        self.version = -1
-        self.updates = 0
-        self.rejected = 0
-        self._max = max_bytes
-        self._keys = keys
-        self._node = node
-        self._latest = node.subscribe_latest(keys.weights)
-
-    def fetch_initial(self, timeout_s: float) -> bool:
-        """Ask the learner for its current weights (a restarted actor gets them promptly)."""
-        try:
-            payload = self._node.query(self._keys.weights_query, None, timeout_s)
-        except RemoteTimeout:
-            return False
-        return self._load(payload)
-
-    def maybe_load(self) -> bool:
-        payload = self._latest.take()
-        return payload is not None and self._load(payload)
-
-    def _load(self, payload: bytes) -> bool:
-        try:
-            w = P.Weights.decode(payload, self._max)
-            if w.arch != self.arch:
-                raise ProtocolError("arch", f"weights for {w.arch}, this network is {self.arch}", "arch")
-            if w.version <= self.version:
-                return False
-            for k, a in w.params.items():  # float64 beyond float32's range would load as Inf
-                if a.dtype.itemsize > 4 and a.dtype.kind == "f" and a.size and float(np.abs(a).max()) > FLOAT32_MAX:
-                    raise ProtocolError(f"params.{k}", "has values beyond float32's range (would load as Inf)", "nonfinite")
-            arrays_to_params(self.net, w.params)
-        except (ProtocolError, ValueError) as e:
-            self.rejected += 1
-            log.warning("weights rejected: %s", e)
-            return False
-        self.version, self.updates = w.version, w.updates
-        return True
 
 
 class ApexActor:
@@ -233,14 +182,10 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | Non
         if slot is None:  # elastic: the slot comes from the running system
             slot, _ = claim_slot(node, P.Keys(run_id), actor_id)
             num_slots = None
-        if cfg.algo == "a3c":
-            from zenrl.actor.a3c import A3CWorker
-            from zenrl.common.metrics import MetricsWriter
+        algorithm(cfg.algo).actor_main()(cfg, node, run_id, actor_id, slot, num_slots, stop)
 
-            metrics = MetricsWriter(Path(cfg.runs_dir) / run_id)
-            try:
-                A3CWorker(cfg, node, run_id, actor_id, slot).run(stop, metrics=metrics)
-            finally:
-                metrics.close()
-        else:
-            ApexActor(cfg, node, run_id, actor_id, slot, num_slots).run(stop)
+
+def run_apex_actor(cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int | None,
+                   stop: threading.Event) -> None:
+    """The Ape-X half of ``zenrl actor`` (:data:`zenrl.common.algorithms.APEX`)."""
+    ApexActor(cfg, node, run_id, actor_id, slot, num_slots).run(stop)

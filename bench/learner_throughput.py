@@ -223,7 +223,7 @@ BUCKETS = [
     ("encode (PriorityUpdate: on the sender thread)", "common/protocol.py", "encode"),
     ("weights encode (_encode_weights)", "learner/service.py", "_encode_weights"),
     ("write_version_mark", "learner/checkpoint.py", "write_version_mark"),
-    ("BackgroundSender.send_priorities", "learner/service.py", "send_priorities"),
+    ("BackgroundSender.send_priorities", "learner/sender.py", "send_priorities"),
     ("stats/metrics (MetricsWriter.write)", "common/metrics.py", "write"),
 ]
 
@@ -272,7 +272,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     from zenrl.common.config import load_config
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
-    from zenrl.learner.service import env_shapes
+    from zenrl.learner.base import env_shapes
 
     t_start = time.perf_counter()
     rounds, warmup_s, dur_s = (1, 1.5, 4.0) if args.quick else (3, 2.0, 8.0)

@@ -23,10 +23,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from zenrl.common.algorithms import algorithm
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
 from zenrl.common.config import RunConfig, SelfPlayConfig, config_from_dict
 from zenrl.common.errors import CheckpointError
-from zenrl.common.networks import ActorCritic, QNetwork, flat_obs, num_actions, obs_spec, sample_categorical
+from zenrl.common.networks import ActorCritic, flat_obs, num_actions, obs_spec, sample_categorical
 
 log = logging.getLogger(__name__)
 
@@ -39,16 +40,17 @@ def checkpoint_config(state: Mapping[str, Any]) -> RunConfig:
 
 
 def policy_weights(state: Mapping[str, Any]) -> tuple[str, Mapping[str, torch.Tensor]]:
-    """``("apex", online Q state dict)`` or ``("a3c", actor-critic state dict)``."""
-    algo = state.get("algo", "apex")
-    if algo == "a3c":
-        if "model" not in state:
-            raise CheckpointError("a3c checkpoint has no 'model' state dict")
-        return "a3c", state["model"]
-    learner = state.get("learner")
-    if not isinstance(learner, Mapping) or "online" not in learner:
-        raise CheckpointError(f"{algo} checkpoint has no learner.online state dict")
-    return "apex", learner["online"]
+    """``(algo, policy state dict)``: the online Q network of Ape-X, the actor-critic of A3C."""
+    try:
+        algo = algorithm(state.get("algo", "apex"))
+    except ValueError as e:
+        raise CheckpointError(f"checkpoint of {e}") from None
+    weights: Any = state
+    for key in algo.policy_state:
+        weights = weights.get(key) if isinstance(weights, Mapping) else None
+    if not isinstance(weights, Mapping):
+        raise CheckpointError(f"{algo.name} checkpoint has no {'.'.join(algo.policy_state)} state dict")
+    return algo.name, weights
 
 
 def build_network(state: Mapping[str, Any], observation_space: gym.Space, action_space: gym.Space) -> torch.nn.Module:
@@ -57,8 +59,7 @@ def build_network(state: Mapping[str, Any], observation_space: gym.Space, action
     mismatch with the trained network is a :class:`CheckpointError` naming the difference."""
     cfg = checkpoint_config(state)
     algo, weights = policy_weights(state)
-    cls = ActorCritic if algo == "a3c" else QNetwork
-    net = cls(obs_spec(observation_space), num_actions(action_space), cfg.network)
+    net = algorithm(algo).policy_network(obs_spec(observation_space), num_actions(action_space), cfg.network)
     try:
         net.load_state_dict(weights)
     except RuntimeError as e:

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -41,11 +40,12 @@ import torch
 from zenrl.common import protocol as P
 from zenrl.common.config import A3CConfig, LearnerConfig, RunConfig
 from zenrl.common.errors import ProtocolError
-from zenrl.common.metrics import MetricsWriter, RateMeter, RejectCounter
+from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
 from zenrl.common.transport import Node
 from zenrl.learner.checkpoint import load_latest, save_checkpoint
-from zenrl.learner.service import BackgroundSender, LearnerBase, check_resume_compatible
+from zenrl.learner.base import LearnerBase, check_resume_compatible
+from zenrl.learner.sender import BackgroundSender
 
 log = logging.getLogger(__name__)
 
@@ -233,7 +233,7 @@ class A3CLearnerService(LearnerBase):
         return P.Weights(version=version, learner_id=self.id, arch=self.arch, updates=self.applier.updates,
                          params=params_to_arrays(self.net)).encode(self.cfg.transport.max_message_bytes)
 
-    # -- main loop ---------------------------------------------------------------------------
+    # -- gradients ---------------------------------------------------------------------------
     def handle(self, key: str, payload: bytes) -> str | None:
         """Decode and apply one gradient message; returns the outcome (None if rejected)."""
         try:
@@ -257,71 +257,65 @@ class A3CLearnerService(LearnerBase):
             self._n_applied += 1
         return outcome
 
-    def run(self, stop: threading.Event) -> None:
-        cfg = self.cfg.learner
-        metrics = MetricsWriter(self.run_dir)
-        sender = BackgroundSender()
-        w_pub = self.node.publisher(self.keys.weights, low_priority=True)
-        stats_pub = self.node.publisher(self.keys.stats("learner", self.id))
-        self.node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
-        self.node.subscribe(self.keys.gradients_all, self._on_gradients)
-        self.node.token(self.keys.alive("learner", self.id))
+    # -- the role loop's Worker ---------------------------------------------------------------
+    @property
+    def updates(self) -> int:
+        return self.applier.updates
+
+    def start(self, node: Node) -> None:
+        self._sender = BackgroundSender()
+        self._w_pub = node.publisher(self.keys.weights, low_priority=True)
+        node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
+        node.subscribe(self.keys.gradients_all, self._on_gradients)
         self._latest_weights = self._encode_weights()
-        w_pub.put(self._latest_weights)
+        self._w_pub.put(self._latest_weights)
         log.info("a3c learner: params version %d, %d updates so far, optimizer %s lr %g",
-                 self.applier.version, self.applier.updates, cfg.optimizer, cfg.lr)
-        upd_rate, step_rate = RateMeter(), RateMeter()
-        every = self.cfg.a3c.broadcast_every
-        last_log = last_ckpt = time.monotonic()
+                 self.applier.version, self.applier.updates, self.cfg.learner.optimizer, self.cfg.learner.lr)
+        self._upd_rate, self._step_rate = RateMeter(), RateMeter()
+
+    def step(self, timeout_s: float) -> bool:
+        """Apply the next queued gradient, if one comes within ``timeout_s``; broadcast every
+        ``a3c.broadcast_every`` applications (and after a version resync)."""
         try:
-            while not stop.is_set():
-                if self.cfg.max_updates is not None and self.applier.updates >= self.cfg.max_updates:
-                    stop.wait(0.5)  # the launcher stops the run once it sees the final count
-                    item = None
-                else:
-                    try:
-                        item = self._q.get(timeout=0.5)
-                    except queue.Empty:
-                        item = None
-                if item is not None:
-                    before = self.env_steps_trained
-                    if self.handle(*item) == APPLIED:
-                        upd_rate.add(1)
-                        step_rate.add(self.env_steps_trained - before)
-                        if self.applier.updates % every == 0:
-                            self._latest_weights = self._encode_weights()
-                            sender.send(w_pub, self._latest_weights)
-                    elif self._resync_pending:
-                        self._resync_pending = False
-                        self._latest_weights = self._encode_weights()
-                        sender.send(w_pub, self._latest_weights)
-                now = time.monotonic()
-                if now - last_log >= cfg.log_interval_s:
-                    n = max(self._n_applied, 1)
-                    vals: dict[str, Any] = {
-                        "updates": self.applier.updates, "version": self.applier.version,
-                        "updates_per_s": upd_rate.rate(), "env_steps_per_s": step_rate.rate(),
-                        "env_steps_trained": self.env_steps_trained, "grad_norm": self._norm_sum / n,
-                        "policy_lag": self._lag_sum / n, "stale_dropped": self.stale_dropped,
-                        "unknown_version_dropped": self.unknown_version_dropped,
-                        "queue_dropped": self.queue_dropped, "queue_len": self._q.qsize(),
-                        "params_restored": self.applier.restored, "send_dropped": sender.dropped,
-                        "lr": self.applier.current_lr()}
-                    vals.update(self.rejects.as_values())
-                    stats_pub.put(P.Stats(role="learner", id=self.id, time=time.time(), values=vals).encode())
-                    metrics.write("learner", self.applier.updates, vals)
-                    if self._n_applied:
-                        log.info("updates %d v%d %.1f upd/s %.0f steps/s lag %.2f |g| %.3f stale %d rejected %d",
-                                 self.applier.updates, self.applier.version, vals["updates_per_s"],
-                                 vals["env_steps_per_s"], vals["policy_lag"], vals["grad_norm"],
-                                 self.stale_dropped, self.rejects.total)
-                    self._norm_sum = self._lag_sum = 0.0
-                    self._n_applied = 0
-                    last_log = now
-                if now - last_ckpt >= cfg.checkpoint_interval_s:
-                    self.save()
-                    last_ckpt = now
-        finally:
-            self.save()
-            sender.close()
-            metrics.close()
+            item = self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            return False
+        before = self.env_steps_trained
+        if self.handle(*item) == APPLIED:
+            self._upd_rate.add(1)
+            self._step_rate.add(self.env_steps_trained - before)
+            if self.applier.updates % self.cfg.a3c.broadcast_every == 0:
+                self._broadcast()
+            return True
+        if self._resync_pending:
+            self._resync_pending = False
+            self._broadcast()
+        return False
+
+    def _broadcast(self) -> None:
+        self._latest_weights = self._encode_weights()
+        self._sender.send(self._w_pub, self._latest_weights)
+
+    def report(self, interval_s: float) -> tuple[dict[str, Any], str | None]:
+        n = max(self._n_applied, 1)
+        vals: dict[str, Any] = {
+            "updates": self.applier.updates, "version": self.applier.version,
+            "updates_per_s": self._upd_rate.rate(), "env_steps_per_s": self._step_rate.rate(),
+            "env_steps_trained": self.env_steps_trained, "grad_norm": self._norm_sum / n,
+            "policy_lag": self._lag_sum / n, "stale_dropped": self.stale_dropped,
+            "unknown_version_dropped": self.unknown_version_dropped,
+            "queue_dropped": self.queue_dropped, "queue_len": self._q.qsize(),
+            "params_restored": self.applier.restored, "send_dropped": self._sender.dropped,
+            "lr": self.applier.current_lr()}
+        vals.update(self.rejects.as_values())
+        line = None
+        if self._n_applied:
+            line = (f"updates {self.applier.updates} v{self.applier.version} {vals['updates_per_s']:.1f} upd/s "
+                    f"{vals['env_steps_per_s']:.0f} steps/s lag {vals['policy_lag']:.2f} |g| {vals['grad_norm']:.3f} "
+                    f"stale {self.stale_dropped} rejected {self.rejects.total}")
+        self._norm_sum = self._lag_sum = 0.0
+        self._n_applied = 0
+        return vals, line
+
+    def close(self) -> None:
+        self._sender.close()

@@ -499,7 +499,7 @@ class ReplayService:
                           "evicted_by_frames": b.evicted_by_frames})
         v.update({
             "inserts_per_s": self.inserted.rate(),
-            "samples_per_s": self.sampled.rate(),
+            "sample_batches_per_s": self.sampled.rate(),
             "sample_batches_total": self.sampled.total,
             "not_ready_replies": self.not_ready_replies,
             "dropped_queue_full": self.dropped_queue_full,

@@ -55,12 +55,12 @@ def usable_cpus() -> list[int]:
     return list(range(os.cpu_count() or 1))
 
 
-def plan(mode: str, algo: str, learner_threads: int, cpus: list[int]) -> dict[str, Placement] | None:
+def plan(mode: str, places_learner: bool, learner_threads: int, cpus: list[int]) -> dict[str, Placement] | None:
     """Placement per role (``learner``, ``actor``, ``replay``, ``evaluator``, and ``router``: the
     launcher's own Zenoh router), or None when
-    ``mode`` is ``off``, the algorithm is not Ape-X, affinity is unsupported, or ``cpus`` has more
+    ``mode`` is ``off``, the algorithm does not place its learner (A3C), affinity is unsupported, or ``cpus`` has more
     than :data:`MAX_CPUS_AUTO` or not more than ``learner_threads`` CPUs."""
-    if mode != "auto" or algo != "apex" or not hasattr(os, "sched_setaffinity"):
+    if mode != "auto" or not places_learner or not hasattr(os, "sched_setaffinity"):
         return None
     if len(cpus) > MAX_CPUS_AUTO or len(cpus) <= learner_threads:
         return None

@@ -11,7 +11,7 @@ from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import (list_checkpoints, read_checkpoint, load_latest, read_version_mark,
                                       save_checkpoint, write_version_mark)
 from zenrl.learner.dqn import DQNLearner
-from zenrl.learner.service import check_resume_compatible
+from zenrl.learner.base import check_resume_compatible
 
 SPEC = {"obs": ArraySpec((4,), "float32")}
 

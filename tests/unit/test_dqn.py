@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from zenrl.actor.service import WeightsFollower
+from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import LearnerConfig, NetworkConfig
 from zenrl.common.networks import (ActorCritic, NumpyQ, QNetwork, arch_fingerprint, arrays_to_params, obs_spec,

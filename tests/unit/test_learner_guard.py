@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests.unit.test_dqn import _FakeNode, _learner_and_batch, _weights
-from zenrl.actor.service import WeightsFollower
+from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.config import NetworkConfig, load_config
 from zenrl.common.networks import QNetwork

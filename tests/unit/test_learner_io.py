@@ -9,7 +9,7 @@ import pytest
 
 from zenrl.common import protocol as P
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
-from zenrl.learner.service import BackgroundSender
+from zenrl.learner.sender import BackgroundSender
 from tests.conftest import wait_until
 
 

@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from zenrl.common.algorithms import algorithm
 from zenrl.placement import ACTOR_NICE, CPUS_ENV, NICE_ENV, Placement, apply_from_env, plan
 
 linux_only = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux-only")
@@ -15,7 +16,7 @@ linux_only = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CP
 
 @linux_only
 def test_two_cpus_reserve_the_last_for_the_learner():
-    p = plan("auto", "apex", 1, [0, 1])
+    p = plan("auto", True, 1, [0, 1])
     assert p["learner"] == Placement((1,), 0)
     assert p["actor"] == Placement((0,), ACTOR_NICE)
     assert p["replay"] == p["evaluator"] == p["router"] == Placement((0,), 0)
@@ -23,7 +24,7 @@ def test_two_cpus_reserve_the_last_for_the_learner():
 
 @linux_only
 def test_four_cpus_and_two_learner_threads():
-    p = plan("auto", "apex", 2, [0, 2, 5, 7])  # the ids this process may use, not 0..n-1
+    p = plan("auto", True, 2, [0, 2, 5, 7])  # the ids this process may use, not 0..n-1
     assert p["learner"].cpus == (5, 7)
     assert p["actor"].cpus == (0, 2) == p["replay"].cpus
 
@@ -36,7 +37,7 @@ def test_four_cpus_and_two_learner_threads():
     ("auto", "apex", 2, [0, 1]),             # the learner would take every CPU
 ])
 def test_no_placement(mode, algo, threads, cpus):
-    assert plan(mode, algo, threads, cpus) is None
+    assert plan(mode, algorithm(algo).places_learner, threads, cpus) is None
 
 
 def test_env_round_trip():

@@ -180,7 +180,7 @@ def test_plot_png(tmp_path, capsys):
     with open(run / "metrics.jsonl", "w") as f:
         for i in range(20):
             f.write(json.dumps({"time": 1000.0 + 6 * i, "source": "learner", "step": 10 * i, "loss": 1.0 / (i + 1),
-                                "q_mean": 0.1 * i, "updates_per_s": 30.0, "samples_per_s": 3840.0}) + "\n")
+                                "q_mean": 0.1 * i, "updates_per_s": 30.0, "transitions_per_s": 3840.0}) + "\n")
             if i % 5 == 0:
                 f.write(json.dumps({"time": 1000.0 + 6 * i, "source": "eval", "step": 10 * i,
                                     "return_mean": float(i), "return_std": 1.0}) + "\n")

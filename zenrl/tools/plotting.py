@@ -60,7 +60,7 @@ def plot(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], width: in
         ("learner loss", [("loss", "learner", "loss")]),
         ("Q mean", [("q_mean", "learner", "q")]),
         ("updates/s", [("updates_per_s", None, "updates/s")]),
-        ("samples/s", [("samples_per_s", None, "samples/s")]),
+        ("transitions trained/s", [("transitions_per_s", "learner", "learner")]),
         ("env steps/s", [("env_steps_per_s", None, "env steps/s")]),
     ]
     drawn = [(title, curves) for title, curves in panels if any(series(s, k)[0].size for k, s, _ in curves)]

@@ -1,0 +1,101 @@
+"""The learner's outgoing traffic off the training thread: priorities merged per wake-up and
+weights broadcasts, put from a thread of its own."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from zenrl.common import protocol as P
+
+log = logging.getLogger(__name__)
+
+
+class BackgroundSender:
+    """Puts payloads from a thread of its own so the training step never waits on the network.
+
+    ``send`` queues bytes; ``send_priorities`` queues one batch's new priorities, and the
+    priorities queued since the last wake-up go out as one :class:`PriorityUpdate` (concatenated
+    in order, so for a key sampled twice the later value wins, as the replay applies them). With
+    ``linger_s`` > 0 the thread waits that long after the first item before it sends, so it
+    wakes once per few training steps instead of once per step (each wake-up of another thread
+    costs the training thread a GIL hand-off). Over ``max_items`` queued, items are dropped and
+    counted in ``dropped``; a failed put or encoding is logged and counted in ``failed``.
+    """
+
+    def __init__(self, max_items: int = 256, linger_s: float = 0.0, max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self.max_items = max_items
+        self.linger_s = linger_s
+        self.max_bytes = max_message_bytes
+        self._items: collections.deque[tuple[Any, Any]] = collections.deque()
+        self._wake = threading.Event()
+        self._closed = False
+        self.dropped = 0
+        self.failed = 0
+        self.sent = 0
+        self._t = threading.Thread(target=self._loop, name="sender", daemon=True)
+        self._t.start()
+
+    def _queue(self, publisher: Any, item: Any) -> None:
+        if len(self._items) >= self.max_items:
+            self.dropped += 1
+            return
+        self._items.append((publisher, item))
+        if not self._wake.is_set():
+            self._wake.set()
+
+    def send(self, publisher: Any, payload: bytes) -> None:
+        self._queue(publisher, payload)
+
+    def send_priorities(self, publisher: Any, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """keys int64[B], priorities float32[B] (held by reference: do not modify them)."""
+        self._queue(publisher, (keys, priorities))
+
+    def _loop(self) -> None:
+        while True:
+            self._wake.wait()
+            if not self._closed and self.linger_s > 0:
+                time.sleep(self.linger_s)
+            self._wake.clear()
+            items = []
+            while self._items:
+                items.append(self._items.popleft())
+            self._flush(items)
+            if self._closed and not self._items:
+                return
+
+    def _flush(self, items: list[tuple[Any, Any]]) -> None:
+        # priorities for one publisher become one message, sent where their first part was queued
+        merged: dict[int, tuple[list, list]] = {}
+        out: list[tuple[Any, Any]] = []
+        for pub, item in items:
+            if isinstance(item, bytes):
+                out.append((pub, item))
+                continue
+            parts = merged.get(id(pub))
+            if parts is None:
+                parts = merged[id(pub)] = ([], [])
+                out.append((pub, parts))
+            parts[0].append(item[0])
+            parts[1].append(item[1])
+        for pub, item in out:
+            try:
+                if not isinstance(item, bytes):
+                    item = P.PriorityUpdate(keys=np.concatenate(item[0]),
+                                            priorities=np.concatenate(item[1])).encode(self.max_bytes)
+                pub.put(item)
+                self.sent += 1
+            except Exception as e:  # zenoh.ZError if the session closed, an encoding error: keep going
+                self.failed += 1
+                log.warning("background put failed: %s", e)
+
+    def close(self) -> None:
+        """Send what is queued, then stop the thread."""
+        self._closed = True
+        self._wake.set()
+        self._t.join(timeout=5)
