@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
 import signal
 import threading
@@ -313,20 +312,6 @@ class Node:
         self._entities.append(tok)
         return tok
 
-    def watch_alive(self, key: str, on_change: Callable[[str, bool], None]) -> Any:
-        """``on_change(key, alive)`` for liveliness tokens matching ``key`` (existing ones
-        first). ``alive=False`` means *unreachable*, not necessarily dead."""
-
-        def handler(sample: zenoh.Sample) -> None:
-            try:
-                on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-            except Exception:
-                log.exception("liveliness callback on %s failed", key)
-
-        sub = self.session.liveliness().declare_subscriber(key, handler, history=True)
-        self._entities.append(sub)
-        return sub
-
     def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens alive now that match ``key``."""
         return [str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout_s) if r.ok is not None]
@@ -373,9 +358,3 @@ def install_stop_signals(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
-
-
-def spawn_context() -> multiprocessing.context.SpawnContext:
-    """The only start method zenrl uses for child processes: forking after ``zenoh.open()``
-    hangs the child."""
-    return multiprocessing.get_context("spawn")
