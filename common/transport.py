@@ -307,10 +307,16 @@ class Node:
         self.session.get(key, zenoh.handlers.Callback(cb, on_drop, indirect=False), payload=payload, timeout=timeout_s)
 
     def token(self, key: str) -> Any:
-        """Declare a liveliness token (undeclared on close)."""
+        """Declare a liveliness token (undeclared on close, or by :meth:`withdraw`)."""
         tok = self.session.liveliness().declare_token(key)
         self._entities.append(tok)
         return tok
+
+    def withdraw(self, entity: Any) -> None:
+        """Undeclare a token (or subscriber, queryable) declared through this node, now."""
+        if entity in self._entities:
+            self._entities.remove(entity)
+        entity.undeclare()
 
     def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens alive now that match ``key``."""
