@@ -4,8 +4,11 @@ token ``slots/<k>/<actor-id>``. A slot whose holder the replay has quarantined (
 lease when frozen), so slots are reused; no central service holds the assignment.
 
 Claiming: read the tokens alive now, pick the lowest free slot (the previous one if it is still
-free), declare the token, wait ``settle_s`` for concurrent claims to propagate, then keep the
-slot only if this actor's id is the smallest among its holders; otherwise withdraw and retry.
+free), declare the token, wait until the router lists it, then keep the slot only if this
+actor's id is the smallest among the slot's holders it lists; otherwise withdraw and retry after
+a random back-off. Waiting for one's own token (rather than a fixed time) is what makes two
+concurrent claims agree: whichever token reached the router second is listed together with the
+first when its owner looks, so at most one of them keeps the slot.
 """
 
 from __future__ import annotations
@@ -37,9 +40,10 @@ def quarantined(node: Node, keys: P.Keys) -> set[str]:
     return {k.rsplit("/", 1)[-1] for k in node.alive_now(keys.quarantined_all, timeout_s=2.0)}
 
 
-def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, settle_s: float = 0.3,
+def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, visible_within_s: float = 10.0,
                attempts: int = 20, seed: int | None = None) -> tuple[int, Any]:
-    """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes)."""
+    """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes).
+    ``visible_within_s``: how long a declared token may take to be listed by the router."""
     rng = random.Random(seed if seed is not None else actor_id)
     for _ in range(attempts):
         # a quarantined actor's slot counts as free: its data is dropped, so its slot explores nothing
@@ -49,13 +53,16 @@ def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = N
             cand = previous
         else:
             cand = next(i for i in range(len(used) + 1) if i not in used)
-        token = node.session.liveliness().declare_token(keys.slot_token(cand, actor_id))
-        time.sleep(settle_s)  # let concurrent claims of the same slot become visible
-        holders = sorted(a for _, a in _holders(node, keys, cand) if a not in bad)
-        if not holders or holders[0] == actor_id:
-            node._entities.append(token)
+        token = node.token(keys.slot_token(cand, actor_id))
+        deadline = time.monotonic() + visible_within_s
+        while True:  # until the router lists our own token: then it lists every earlier claim too
+            holders = sorted(a for _, a in _holders(node, keys, cand) if a not in bad)
+            if actor_id in holders or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)  # poll interval (each look is a round trip to the router)
+        if holders and holders[0] == actor_id:
             log.info("actor %s holds exploration slot %d", actor_id, cand)
             return cand, token
-        token.undeclare()
-        time.sleep(rng.uniform(0.05, 0.3))
+        node.withdraw(token)
+        time.sleep(rng.uniform(0.05, 0.3))  # back off before the next try
     raise TransportError(f"actor {actor_id} could not claim an exploration slot in {attempts} attempts")

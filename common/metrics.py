@@ -106,10 +106,13 @@ class MetricsWriter:
                 self._tb.close()
 
 
-def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
-    """All records of a run's ``metrics.jsonl`` (a torn last line is skipped)."""
-    out = []
-    p = Path(run_dir) / "metrics.jsonl"
+def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """All records of a run's ``metrics.jsonl`` (``path``: the run folder or the file itself; a
+    torn last line, from a run still writing, is skipped)."""
+    out: list[dict[str, Any]] = []
+    p = Path(path)
+    if p.is_dir():
+        p = p / "metrics.jsonl"
     if not p.exists():
         return out
     for line in p.read_text().splitlines():

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
 import signal
 import threading
@@ -308,24 +307,16 @@ class Node:
         self.session.get(key, zenoh.handlers.Callback(cb, on_drop, indirect=False), payload=payload, timeout=timeout_s)
 
     def token(self, key: str) -> Any:
-        """Declare a liveliness token (undeclared on close)."""
+        """Declare a liveliness token (undeclared on close, or by :meth:`withdraw`)."""
         tok = self.session.liveliness().declare_token(key)
         self._entities.append(tok)
         return tok
 
-    def watch_alive(self, key: str, on_change: Callable[[str, bool], None]) -> Any:
-        """``on_change(key, alive)`` for liveliness tokens matching ``key`` (existing ones
-        first). ``alive=False`` means *unreachable*, not necessarily dead."""
-
-        def handler(sample: zenoh.Sample) -> None:
-            try:
-                on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
-            except Exception:
-                log.exception("liveliness callback on %s failed", key)
-
-        sub = self.session.liveliness().declare_subscriber(key, handler, history=True)
-        self._entities.append(sub)
-        return sub
+    def withdraw(self, entity: Any) -> None:
+        """Undeclare a token (or subscriber, queryable) declared through this node, now."""
+        if entity in self._entities:
+            self._entities.remove(entity)
+        entity.undeclare()
 
     def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens alive now that match ``key``."""
@@ -373,9 +364,3 @@ def install_stop_signals(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
-
-
-def spawn_context() -> multiprocessing.context.SpawnContext:
-    """The only start method zenrl uses for child processes: forking after ``zenoh.open()``
-    hangs the child."""
-    return multiprocessing.get_context("spawn")

@@ -301,30 +301,6 @@ def readable(cam_x: float, cam_y: float, yaw: float, pos: np.ndarray, normal: np
     return ok
 
 
-def readable_many(cams: np.ndarray, yaws: np.ndarray, pos: np.ndarray, normal: np.ndarray,
-                  blockers_fn, read_range: float, cos_read_angle: float,
-                  half_fov: float = CAMERA_HFOV / 2) -> np.ndarray:
-    """:func:`readable` for R cameras at once: cams (R, 2), yaws (R,), pos/normal (R, M, 2),
-    ``blockers_fn(r)`` -> (S, 4) blockers of camera r (called only if needed). -> bool[R, M]."""
-    vx, vy = pos[:, :, 0] - cams[:, 0:1], pos[:, :, 1] - cams[:, 1:2]
-    d2 = vx * vx + vy * vy
-    ok = (d2 >= MIN_READ_DIST ** 2) & (d2 <= read_range * read_range)
-    rr, mm = np.nonzero(ok)
-    if rr.size == 0:
-        return ok
-    vx, vy = vx[rr, mm], vy[rr, mm]
-    bearing = (np.arctan2(vy, vx) - yaws[rr] + np.pi) % (2 * np.pi) - np.pi
-    good = (np.abs(bearing) <= half_fov) & (
-        -(vx * normal[rr, mm, 0] + vy * normal[rr, mm, 1]) > cos_read_angle * np.sqrt(d2[rr, mm]))
-    ok[rr, mm] = good
-    rr, mm = rr[good], mm[good]
-    for r in np.unique(rr):
-        m = mm[rr == r]
-        cam = np.broadcast_to(cams[r], (m.size, 2))
-        ok[r, m] = ~segments_cross(cam, pos[r, m], blockers_fn(int(r)))
-    return ok
-
-
 # --------------------------------------------------------------------------------------
 # Containment checks (used by tests and the scripted bots)
 # --------------------------------------------------------------------------------------

@@ -11,26 +11,12 @@ from typing import Any
 import numpy as np
 
 from zenrl.common.errors import ZenrlError
+from zenrl.common.metrics import read_metrics
 from zenrl.tools.loading import need
-
-def read_metrics(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
-    """``metrics.jsonl`` records (a torn last line, from a run still writing, is skipped)."""
-    recs = []
-    with open(path) as f:
-        for line in f:
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                recs.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue
-    return recs
-
 
 def plot(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], width: int = 1200, height: int = 800) -> dict[str, Any]:
     """Learning curves of a run as a ``width`` x ``height`` PNG: eval return mean +- std (and win
-    rate if logged), learner loss, Q mean, updates/s, samples/s and env steps/s if present,
+    rate if logged), learner loss, Q mean, updates/s, transitions trained/s and env steps/s if present,
     against wall-clock minutes since the run's first record. A resumed run's curves break where
     it was stopped (no line drawn across the pause). Returns which panels were drawn."""
     matplotlib = need("matplotlib", "zenrl plot")
