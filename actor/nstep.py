@@ -241,6 +241,16 @@ class NStepBlocks:
             if e_idx.size:
                 nxt[e_idx] = self._final[key][nxt_row[e_idx], env[e_idx]]
             data["next_" + key] = nxt
+        prio = self._scalars_and_priorities(data, K, R, m, term, trunc, nxt_row, env, flat_ended, value_fn)
+        return Block(data, prio, env.copy())
+
+    def _scalars_and_priorities(self, data: dict[str, np.ndarray], K: int, R: np.ndarray, m: np.ndarray,
+                                term: np.ndarray, trunc: np.ndarray, nxt_row: np.ndarray, env: np.ndarray,
+                                flat_ended: np.ndarray, value_fn: ValueFn) -> np.ndarray:
+        """Adds action, reward, terminated, truncated and n to ``data`` and returns the initial
+        priorities float32[K * E]: |R + gamma^m V(s_{j+m}) - Q(s_j, a_j)| with V from the Q rows
+        recorded when acting, V(final) from ``value_fn`` where truncated, 0 where terminated."""
+        E = self.E
         data["action"] = self._act[:K].ravel().copy()
         data["reward"] = R.ravel().astype(np.float32)
         term_f, trunc_f = term.ravel(), trunc.ravel()
@@ -248,16 +258,14 @@ class NStepBlocks:
         data["truncated"] = trunc_f
         m_f = m.ravel()
         data["n"] = m_f.astype(np.uint8)
-        # bootstrap values: V(s_{j+n}) from acting, V(final) via value_fn where truncated, 0 where terminated
         A = self._q.shape[2]
         boot = _max_last(self._q).ravel().take(nxt_row * E + env).astype(np.float64)
         boot[flat_ended] = 0.0
         tr_idx = trunc_f.nonzero()[0]
-        if tr_idx.size:
-            boot[tr_idx] = value_fn({k[len("next_"):]: data[k][tr_idx] for k in data if k.startswith("next_")})
+        if tr_idx.size:  # the final observations, from the stored rows (frame mode sends ids instead)
+            boot[tr_idx] = value_fn({k: buf[nxt_row[tr_idx], env[tr_idx]] for k, buf in self._final.items()})
         q_sa = self._q[:K].reshape(-1).take(np.arange(0, K * E * A, A) + self._act[:K].ravel())
-        prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
-        return Block(data, prio, env.copy())
+        return np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
 
     def _emit_frames(self, K: int, R: np.ndarray, m: np.ndarray, term: np.ndarray, trunc: np.ndarray,
                      nxt_row: np.ndarray, env: np.ndarray, e_idx: np.ndarray, flat_ended: np.ndarray,
@@ -274,20 +282,6 @@ class NStepBlocks:
         for key in self._obs:
             data[key] = obs_ids[:, 0].copy() if squeeze else obs_ids.copy()
             data["next_" + key] = nxt_ids[:, 0].copy() if squeeze else nxt_ids
-        data["action"] = self._act[:K].ravel().copy()
-        data["reward"] = R.ravel().astype(np.float32)
-        term_f, trunc_f = term.ravel(), trunc.ravel()
-        data["terminated"] = term_f
-        data["truncated"] = trunc_f
-        m_f = m.ravel()
-        data["n"] = m_f.astype(np.uint8)
-        A = self._q.shape[2]
-        boot = _max_last(self._q).ravel().take(nxt_row * E + env).astype(np.float64)
-        boot[flat_ended] = 0.0
-        tr_idx = trunc_f.nonzero()[0]
-        if tr_idx.size:
-            boot[tr_idx] = value_fn({k: buf[nxt_row[tr_idx], env[tr_idx]] for k, buf in self._final.items()})
-        q_sa = self._q[:K].reshape(-1).take(np.arange(0, K * E * A, A) + self._act[:K].ravel())
-        prio = np.abs(R.ravel() + self._disc[m_f] * boot - q_sa).astype(np.float32)
+        prio = self._scalars_and_priorities(data, K, R, m, term, trunc, nxt_row, env, flat_ended, value_fn)
         frames, base = self._take_frames()
         return Block(data, prio, env.copy(), frames, base)
