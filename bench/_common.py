@@ -8,6 +8,7 @@ import json
 import os
 import platform
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -86,6 +87,33 @@ def machine_info(t_start: float) -> dict[str, Any]:
 def record_error(out: dict[str, Any], e: BaseException) -> None:
     out["error"] = f"{type(e).__name__}: {e}"[:2000]
     log(f"benchmark failed: {out['error']}")
+
+
+def shut_down(procs: "Procs", node: Any, router: Any) -> None:
+    """The end of every networked benchmark: child processes, then its client node (if it got
+    one), then the router it opened."""
+    procs.stop_all()
+    if node is not None:
+        node.close()
+    router.close()
+
+
+def ab_cpu_us(steps: dict[Any, Callable[[int], Any]], rounds: int, round_s: float, items_per_call: int = 1
+              ) -> dict[Any, float]:
+    """Median CPU microseconds (this thread) per item of each variant in ``steps`` (each called
+    with a running call count, ``items_per_call`` items a call). The variants take turns, their
+    order reversed every round, so that a drift in the machine's load hits them alike."""
+    per_item: dict[Any, list[float]] = {k: [] for k in steps}
+    keys = list(steps)
+    for r in range(rounds):
+        for k in (keys if r % 2 == 0 else keys[::-1]):
+            step, n = steps[k], 0
+            t0, c0 = time.perf_counter(), time.thread_time()
+            while time.perf_counter() - t0 < round_s:
+                step(n)
+                n += 1
+            per_item[k].append((time.thread_time() - c0) / (n * items_per_call) * 1e6)
+    return {k: statistics.median(v) for k, v in per_item.items()}
 
 
 def emit(out: dict[str, Any]) -> int:

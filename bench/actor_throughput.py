@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import ROOT, Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import ROOT, Procs, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CONFIG = ROOT / "configs" / "cartpole_apex.yaml"
 ENVS = 64
@@ -274,10 +274,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     except BaseException as e:
         record_error(out, e)
     finally:
-        procs.stop_all()
-        if node is not None:
-            node.close()
-        router.close()
+        shut_down(procs, node, router)
     return emit(out)
 
 

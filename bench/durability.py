@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import Procs, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CHUNK = 64
 TARGET_RATIO = 0.8
@@ -279,10 +279,7 @@ def part_b(kill_times: list[float], tmp: Path) -> dict[str, Any]:
                 f"lost {tr['items_lost']} = {tr['lost_seconds']:.2f} s of stream")
             trials.append(tr)
     finally:
-        procs.stop_all()
-        if node is not None:
-            node.close()
-        router.close()
+        shut_down(procs, node, router)
     return {"trials": trials}
 
 

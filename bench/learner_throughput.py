@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import ROOT, Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import ROOT, Procs, ab_cpu_us, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CONFIG = ROOT / "configs" / "cartpole_apex.yaml"
 BATCH = 512
@@ -154,18 +154,14 @@ def guard_overhead(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: fl
         d["meta/policy_version"] = np.zeros(BATCH, np.int64)
         batches.append(learners[True].batch_to_tensors(d, (rng.random(BATCH) * 0.9 + 0.1).astype(np.float32)))
     every = cfg.learner.publish_every_updates
-    per_update: dict[bool, list[float]] = {True: [], False: []}
-    for r in range(rounds):
-        for guarded in ((True, False) if r % 2 == 0 else (False, True)):
-            dqn, n = learners[guarded], 0
-            t0, c0 = time.perf_counter(), time.thread_time()
-            while time.perf_counter() - t0 < round_s:
-                dqn.update(batches[n % 8])
-                n += 1
-                if guarded and n % every == 0 and not dqn.params_finite():
-                    raise RuntimeError("the benchmark's learner diverged")
-            per_update[guarded].append((time.thread_time() - c0) / n * 1e6)
-    on, off = statistics.median(per_update[True]), statistics.median(per_update[False])
+
+    def guarded(n: int) -> None:  # with the finite check each broadcast would make
+        learners[True].update(batches[n % 8])
+        if (n + 1) % every == 0 and not learners[True].params_finite():
+            raise RuntimeError("the benchmark's learner diverged")
+
+    us = ab_cpu_us({True: guarded, False: lambda n: learners[False].update(batches[n % 8])}, rounds, round_s)
+    on, off = us[True], us[False]
     return {"guard_overhead_ratio": round(on / off, 4), "update_us_guarded": round(on, 1),
             "update_us_unguarded": round(off, 1), "guard_rounds": rounds, "target_guard_overhead_ratio": 1.02}
 
@@ -353,10 +349,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     except BaseException as e:
         record_error(out, e)
     finally:
-        procs.stop_all()
-        if node is not None:
-            node.close()
-        router.close()
+        shut_down(procs, node, router)
     return emit(out)
 
 

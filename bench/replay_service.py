@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, emit, log, machine_info, record_error, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import Procs, ab_cpu_us, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 from zenrl.common.config import ActorConfig  # noqa: E402
 
 CHUNK = ActorConfig().chunk_size  # what actors send by default
@@ -528,19 +528,12 @@ def checks_overhead(rounds: int, round_s: float) -> dict[str, Any]:
                               None, "benchchk") for on in (True, False)}
     pool = encoded_pool(200, 64, "pub0")
     batches = [[(pool[(j * 32 + k) % 64], "zenrl/benchchk/transitions/pub0") for k in range(32)] for j in range(2)]
-    per_chunk: dict[bool, list[float]] = {True: [], False: []}
     for svc in svcs.values():
         if svc.ingest_many(batches[0]) != 32 * CHUNK:
             raise RuntimeError("the benchmark's chunks were rejected")
-    for r in range(rounds):
-        for on in ((True, False) if r % 2 == 0 else (False, True)):
-            svc, n = svcs[on], 0
-            t0, c0 = time.perf_counter(), time.thread_time()
-            while time.perf_counter() - t0 < round_s:
-                svc.ingest_many(batches[n % 2])
-                n += 1
-            per_chunk[on].append((time.thread_time() - c0) / (n * 32) * 1e6)
-    on, off = statistics.median(per_chunk[True]), statistics.median(per_chunk[False])
+    us = ab_cpu_us({on: (lambda n, svc=svc: svc.ingest_many(batches[n % 2])) for on, svc in svcs.items()},
+                   rounds, round_s, items_per_call=32)
+    on, off = us[True], us[False]
     chk = svcs[True].checker
     d, p = cartpole_batches(201, 1)[0]
     t0, k = time.perf_counter(), 0
@@ -638,10 +631,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     except BaseException as e:
         record_error(out, e)
     finally:
-        procs.stop_all()
-        if node is not None:
-            node.close()
-        router.close()
+        shut_down(procs, node, router)
     return emit(out)
 
 
@@ -711,10 +701,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
     except BaseException as e:
         record_error(out, e)
     finally:
-        procs.stop_all()
-        if node is not None:
-            node.close()
-        router.close()
+        shut_down(procs, node, router)
     return emit(out)
 
 
