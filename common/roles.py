@@ -30,11 +30,6 @@ from zenrl.common import protocol as P
 log = logging.getLogger(__name__)
 
 
-class Saveable(Protocol):
-    def save(self) -> Any:
-        """Write the training state (a checkpoint); called on the checkpoint cadence and on stop."""
-
-
 class Worker(Protocol):
     """One role's algorithm, driven by :class:`RoleLoop`."""
 
