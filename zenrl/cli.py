@@ -359,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     def policy_args(s: argparse.ArgumentParser) -> None:
         s.add_argument("--checkpoint", required=True,
-                       help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest checkpoint")
+                       help="a checkpoint file, a `zenrl export` file (evaluate and play; e.g. models/*.pt), "
+                            "or a run folder (runs/<id>) or checkpoints folder: its newest checkpoint")
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
         s.add_argument("--env-kwargs", help="JSON object merged over the checkpoint's env.kwargs, e.g. '{\"match_time\": 60}'")
         s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
@@ -367,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates")
     policy_args(s)
     s.add_argument("--opponents", default="cheese,teriyaki,clubhouse,waypoint",
-                   help="comma-separated match opponents (ignored for non-match envs)")
+                   help="comma-separated match opponents: bot names, or checkpoint / exported policy files "
+                        "(e.g. an earlier snapshot); ignored for non-match envs")
     s.add_argument("--episodes", type=int, default=20, help="episodes per opponent (half red, half blue)")
     s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
     s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")

@@ -257,6 +257,72 @@ def test_exported_policy_loads_without_zenrl(ckpts, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
 
 
+def _episodes(summary):
+    return [(r["opponent"], r["side"], r["seed"], r["ret"], r["length"], r["outcome"]) for r in summary["results"]]
+
+
+@pytest.mark.parametrize("which", ["match", "cartpole"])
+def test_evaluate_exported_file_plays_the_same_episodes_as_its_checkpoint(ckpts, tmp_path, which):
+    """``zenrl evaluate`` on an exported file: its env comes from the file's zenrl.json and it
+    plays exactly the checkpoint's greedy episodes (same seeds, same actions, same outcomes)."""
+    out = tmp_path / "policy.pt"
+    tools.export(str(ckpts[which]), str(out))
+    assert tools.is_exported(out) and not tools.is_exported(ckpts[which])
+    kw = {"opponents": ["cheese"], "episodes": 2} if which == "match" else {"episodes": 3}
+    ref = tools.evaluate(str(ckpts[which]), progress=False, seed=5, **kw)
+    mine = tools.evaluate(str(out), progress=False, seed=5, **kw)
+    assert mine["env"] == ref["env"] and _episodes(mine) == _episodes(ref)
+    if which == "match":
+        assert {r["side"] for r in mine["results"]} == {"red", "blue"}
+    with pytest.raises(ZenrlError, match="greedy only"):
+        tools.evaluate(str(out), progress=False, policy="sample", **kw)
+    with pytest.raises(ZenrlError, match="already an exported policy"):
+        tools.export(str(out), str(tmp_path / "again.pt"))
+
+
+def test_exported_file_for_another_env_is_refused_by_name(ckpts, tmp_path):
+    out = tmp_path / "cartpole.pt"
+    tools.export(str(ckpts["cartpole"]), str(out))
+    with pytest.raises(ZenrlError, match="observation keys"):
+        tools.evaluate(str(out), env_id=BW, env_kwargs=SHORT_MATCH, opponents=["cheese"], episodes=2, progress=False)
+    env = make_env(RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}}).env)
+    try:
+        with pytest.raises(ZenrlError, match="cartpole.pt"):
+            tools.load_player(out, env.observation_space, env.action_space)
+    finally:
+        env.close()
+
+
+def test_evaluate_against_policy_files(ckpts, tmp_path):
+    """--opponents mixes bots and frozen policies (a checkpoint and an exported file); each file
+    opponent really drives the enemy robot, on both sides."""
+    from zenrl.tools.evaluation import EpisodeRunner, split_opponents
+
+    exported = tmp_path / "old.pt"
+    tools.export(str(ckpts["match"]), str(exported))
+    ckpt = str(ckpts["match"])
+    summary = tools.evaluate(ckpt, opponents=["cheese", ckpt, str(exported)], episodes=2, progress=False)
+    assert [r["opponent"] for r in summary["rows"]] == ["cheese", ckpt, str(exported)]
+    assert all(r["episodes"] == 2 for r in summary["rows"])
+
+    runner = EpisodeRunner(ckpt, None, None, [str(exported)])
+    calls = []
+    inner = runner.frozen[str(exported)]
+    runner.frozen[str(exported)] = lambda obs: calls.append(1) or inner(obs)
+    try:
+        for side in ("red", "blue"):
+            before = len(calls)
+            res = runner.run(tools.Job(0, 3, str(exported), side))
+            assert res.outcome in ("win", "draw", "loss") and len(calls) - before >= res.length // 2
+            assert runner.env.unwrapped.opponent_name == "policy"
+    finally:
+        runner.close()
+    with pytest.raises(ZenrlError, match="'nobody'.*neither a bot"):
+        split_opponents(["cheese", "nobody"])
+    with pytest.raises(ZenrlError, match="neither a bot"):
+        tools.evaluate(ckpt, opponents=[str(tmp_path / "missing.pt")], episodes=2, progress=False)
+
+
 # --------------------------------------------------------------------------------------------
 def test_selfplay_wrapper_plays_snapshots(ckpts, tmp_path):
     cfg = RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}, "runs_dir": str(tmp_path),

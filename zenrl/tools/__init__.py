@@ -7,7 +7,7 @@
 * ``zenrl plot`` (:mod:`~zenrl.tools.plotting`): learning curves from ``metrics.jsonl``.
 * ``zenrl export`` (:mod:`~zenrl.tools.torchscript`): the greedy policy as TorchScript.
 
-Each takes a checkpoint file, a run folder or a checkpoints folder (the newest checkpoint:
+Each takes a checkpoint file (evaluate and play also a ``zenrl export`` file), a run folder or a checkpoints folder (the newest checkpoint:
 :func:`~zenrl.tools.loading.resolve_checkpoint`). pillow, matplotlib, imageio and pygame are the
 optional extra ``viz``; a command that needs a missing one fails with a
 :class:`~zenrl.common.errors.ZenrlError` saying what to install.
@@ -15,14 +15,15 @@ optional extra ``viz``; a command that needs a missing one fails with a
 
 from zenrl.tools.evaluation import (EpisodeResult, EpisodeRunner, Job, evaluate, make_jobs, render_table,
                                     summarize)
-from zenrl.tools.loading import (MATCH_OPPONENTS, env_config_for, is_match_env, load_policy_env, print_json_line,
-                                 quiet_native_imports, resolve_checkpoint)
+from zenrl.tools.loading import (MATCH_OPPONENTS, ExportedPlayer, env_config_for, is_exported, is_match_env,
+                                 load_player, load_policy_env, print_json_line, quiet_native_imports,
+                                 resolve_checkpoint)
 from zenrl.tools.media import play, record_episode, write_video
 from zenrl.tools.plotting import plot, read_metrics
 from zenrl.tools.stats import mean_ci, t975, wilson
 from zenrl.tools.torchscript import ExportedPolicy, export
 
-__all__ = ["EpisodeResult", "EpisodeRunner", "ExportedPolicy", "Job", "MATCH_OPPONENTS", "env_config_for", "evaluate",
-           "export", "is_match_env", "load_policy_env", "make_jobs", "mean_ci", "play", "plot", "print_json_line",
+__all__ = ["EpisodeResult", "EpisodeRunner", "ExportedPlayer", "ExportedPolicy", "Job", "MATCH_OPPONENTS",
+           "env_config_for", "evaluate", "export", "is_exported", "is_match_env", "load_player", "load_policy_env", "make_jobs", "mean_ci", "play", "plot", "print_json_line",
            "quiet_native_imports", "read_metrics", "record_episode", "render_table", "resolve_checkpoint", "summarize",
            "t975", "wilson", "write_video"]

@@ -15,7 +15,8 @@ import torch
 
 from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.errors import ZenrlError
-from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_policy_env, quiet_native_imports,
+from zenrl.common.envs.bw_opponents import OPPONENT_NAMES
+from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_player, load_policy_env, quiet_native_imports,
                                  resolve_checkpoint)
 from zenrl.tools.stats import mean_ci, wilson
 
@@ -42,18 +43,56 @@ class EpisodeResult:
     enemy_score: int | None = None
 
 
+def split_opponents(opponents: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(scripted bot names, policy files) of an ``--opponents`` list: a bot's name, or the path
+    of a checkpoint or an exported file (a frozen policy, e.g. an earlier snapshot). Anything
+    else is a :class:`ZenrlError` naming it."""
+    bots, files = [], []
+    for o in opponents:
+        if o in OPPONENT_NAMES and o != "policy":
+            bots.append(o)
+        elif Path(o).is_file():
+            files.append(o)
+        else:
+            raise ZenrlError(f"opponent {o!r} is neither a bot ({', '.join(n for n in OPPONENT_NAMES if n != 'policy')}) "
+                             "nor an existing checkpoint or exported policy file")
+    return bots, files
+
+
+class _Switch:
+    """The env's ``opponent_policy``: forwards to whichever frozen policy the episode plays."""
+
+    def __init__(self) -> None:
+        self.current = None
+
+    def __call__(self, obs: Any) -> int:
+        return self.current(obs)
+
+
 class EpisodeRunner:
-    """Loads the checkpoint once and plays :class:`Job` episodes (one per call)."""
+    """Loads the checkpoint (or exported file) once and plays :class:`Job` episodes (one per
+    call). ``opponents`` may name policy files as well as bots (:func:`split_opponents`)."""
 
     def __init__(self, checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
                  opponents: Sequence[str] | None, sample: bool = False) -> None:
         torch.set_num_threads(1)
-        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=opponents, sample=sample)
+        bots, files = split_opponents(opponents) if opponents else (None, [])
+        if files and not bots:
+            bots = ["idle"]  # the env needs one scripted bot to start from; every job names its own
+        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=bots, sample=sample)
+        self.frozen = {}
+        if files:
+            self.switch = _Switch()
+            self.env.unwrapped.opponent_policy = self.switch  # built on the first episode that names "policy"
+            self.frozen = {f: load_player(f, self.env.observation_space, self.env.action_space) for f in files}
 
     def run(self, job: Job) -> EpisodeResult:
         self.policy.reseed(job.seed)  # a sampled episode depends on its job only, not on the worker
         options = {}
-        if job.opponent is not None:
+        if job.opponent in self.frozen:
+            self.switch.current = self.frozen[job.opponent]
+            options = {"opponent": "policy", "side": job.side}
+        elif job.opponent is not None:
             options = {"opponent": job.opponent, "side": job.side}
         obs, info = self.env.reset(seed=job.seed, options=options or None)
         ret, n, done = 0.0, 0, False
@@ -134,8 +173,9 @@ def summarize(results: Iterable[EpisodeResult], match: bool) -> dict[str, Any]:
 def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str, Any] | None = None,
              opponents: Sequence[str] | None = MATCH_OPPONENTS, episodes: int = 20, workers: int = 1,
              seed: int = 2_000_000, progress: bool = True, policy: str = "greedy") -> dict[str, Any]:
-    """Play ``episodes`` per opponent (match envs; ``opponents`` ignored otherwise) with the
-    policy of ``checkpoint`` (a file, or a folder's newest checkpoint): ``"greedy"`` (argmax) or ``"sample"`` (draw from an actor-critic's
+    """Play ``episodes`` per opponent (match envs; ``opponents`` ignored otherwise: bot names or
+    policy files, see :func:`split_opponents`) with the policy of ``checkpoint`` (a checkpoint or
+    ``zenrl export`` file, or a folder's newest checkpoint): ``"greedy"`` (argmax) or ``"sample"`` (draw from an actor-critic's
     action distribution, seeded per episode); ``workers`` > 1 uses that many ``spawn`` processes.
     Returns :func:`summarize`'s dict plus ``checkpoint``, ``env``, ``policy`` and per-episode
     ``results``."""
@@ -151,6 +191,8 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
     opps = list(opponents) if match and opponents else None
     if match and not opps:
         raise ZenrlError("a match env needs at least one opponent (--opponents)")
+    if opps:
+        split_opponents(opps)  # a mistake is one error here, not one per worker
     jobs = make_jobs(episodes, opps, seed)
     results: list[EpisodeResult] = []
     bar = None

@@ -8,12 +8,16 @@ import json
 import logging
 import os
 import sys
+import warnings
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import gymnasium as gym
+import numpy as np
+import torch
 
-from zenrl.common.config import EnvConfig, RunConfig
+from zenrl.common.config import EnvConfig, RunConfig, config_from_dict
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
@@ -63,21 +67,117 @@ def _match_kwargs(kwargs: Mapping[str, Any], opponents: Sequence[str]) -> dict[s
     return kw
 
 
+def is_exported(path: str | os.PathLike[str]) -> bool:
+    """True for a file written by ``zenrl export`` (a TorchScript archive carrying
+    ``extra/zenrl.json``), False for anything else (a checkpoint, a missing file)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return any(n.endswith("/extra/zenrl.json") for n in z.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+class ExportedPlayer:
+    """``player(obs) -> int`` for one observation, from a ``zenrl export`` file: the greedy policy
+    as TorchScript plus its ``zenrl.json`` description (env id and kwargs, input shapes and dtypes,
+    number of actions). ``meta`` is that description.
+
+    A TorchScript file is a program (its graph runs when called): load only files you trust, such
+    as the ones in ``models/``. Checkpoints (``torch.load(weights_only=True)``) carry weights only.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        extra = {"zenrl.json": ""}
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self.module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+            self.meta = json.loads(extra["zenrl.json"])
+        except Exception as e:  # torch raises many types for a damaged archive
+            raise ZenrlError(f"exported policy {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
+        if not isinstance(self.meta, dict) or not isinstance(self.meta.get("inputs"), dict) or "env" not in self.meta:
+            raise ZenrlError(f"exported policy {str(path)!r}: zenrl.json lacks 'env' or 'inputs'")
+        self.module.eval()
+        self.name = Path(path).name
+        self.n_actions = int(self.meta.get("n_actions", 0))
+        self.keys = list(self.meta["inputs"])
+        self.dict_obs = self.keys != ["obs"]
+
+    def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
+        """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
+        spaces = observation_space.spaces if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
+        if sorted(spaces) != sorted(self.keys):
+            raise ZenrlError(f"{self.name}: exported for observation keys {sorted(self.keys)}, the env has {sorted(spaces)}")
+        for k, want in self.meta["inputs"].items():
+            sp = spaces[k]
+            if list(sp.shape) != list(want.get("shape", [])) or str(sp.dtype) != want.get("dtype"):
+                raise ZenrlError(f"{self.name}: input {k!r} exported as {want.get('dtype')}{want.get('shape')}, "
+                                 f"the env gives {sp.dtype}{list(sp.shape)}")
+        n = getattr(action_space, "n", None)
+        if n is None or int(n) != self.n_actions:
+            raise ZenrlError(f"{self.name}: exported for {self.n_actions} actions, the env has {action_space}")
+
+    def reseed(self, seed: int | None) -> None:
+        """Nothing to reseed: the exported policy is greedy."""
+
+    def __call__(self, obs: Any) -> int:
+        with torch.no_grad():
+            if self.dict_obs:
+                x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}
+            else:
+                x = torch.as_tensor(np.ascontiguousarray(obs))
+            return int(self.module(x))
+
+
+def exported_config(meta: Mapping[str, Any]) -> RunConfig:
+    """A run config holding what an exported file says of its training: algo and env."""
+    return config_from_dict({"algo": meta.get("algo", "apex"),
+                             "env": {"id": meta["env"], "kwargs": dict(meta.get("env_kwargs") or {})}})
+
+
+def load_player(path: str | os.PathLike[str], observation_space: gym.Space, action_space: gym.Space):
+    """A checkpoint or an exported file -> ``player(obs) -> int`` (greedy) for an env with these
+    single spaces; a mismatch is a :class:`ZenrlError` naming it."""
+    if is_exported(path):
+        player = ExportedPlayer(path)
+        player.check_spaces(observation_space, action_space)
+        return player
+    try:
+        net = build_network(read_checkpoint(path), observation_space, action_space)
+    except ZenrlError as e:
+        raise ZenrlError(f"{path}: {e}") from None
+    return GreedyPolicy(net, num_actions(action_space), name=Path(path).name)
+
+
 def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = None,
                     env_kwargs: Mapping[str, Any] | None = None, render_mode: str | None = None,
-                    opponents: Sequence[str] | None = None, sample: bool = False) -> tuple[GreedyPolicy, gym.Env, RunConfig]:
-    """Checkpoint -> (greedy policy, a fresh env it plays in, the checkpoint's config).
-    ``sample``: the policy draws from an actor-critic's action distribution instead."""
-    state = read_checkpoint(checkpoint)
-    cfg = checkpoint_config(state)
+                    opponents: Sequence[str] | None = None, sample: bool = False) -> tuple[Any, gym.Env, RunConfig]:
+    """Checkpoint or exported file -> (greedy policy, a fresh env it plays in, the config it was
+    trained with: the whole config for a checkpoint, algo and env for an exported file).
+    ``sample``: the policy draws from an actor-critic's action distribution instead (checkpoints only)."""
+    exported = ExportedPlayer(checkpoint) if is_exported(checkpoint) else None
+    if exported is not None:
+        if sample:
+            raise ZenrlError(f"{checkpoint}: an exported policy is greedy only; --policy sample needs a checkpoint")
+        cfg = exported_config(exported.meta)
+    else:
+        state = read_checkpoint(checkpoint)
+        cfg = checkpoint_config(state)
     ecfg = env_config_for(cfg, env_id, env_kwargs)
     if opponents is not None:
         ecfg = EnvConfig(id=ecfg.id, kwargs=_match_kwargs(ecfg.kwargs, opponents), max_episode_steps=ecfg.max_episode_steps)
     env = make_env(ecfg, render_mode=render_mode)
-    net = build_network(state, env.observation_space, env.action_space)
+    if exported is not None:
+        try:
+            exported.check_spaces(env.observation_space, env.action_space)
+        except ZenrlError:
+            env.close()
+            raise
+        return exported, env, cfg
     try:
+        net = build_network(state, env.observation_space, env.action_space)
         policy = GreedyPolicy(net, num_actions(env.action_space), name=Path(checkpoint).name, sample=sample)
-    except ValueError as e:
+    except (ValueError, ZenrlError) as e:
         env.close()
         raise ZenrlError(f"{checkpoint}: {e}") from None
     return policy, env, cfg

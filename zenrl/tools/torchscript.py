@@ -11,7 +11,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from zenrl.tools.loading import env_config_for, is_match_env, load_policy_env, resolve_checkpoint
+from zenrl.common.errors import ZenrlError
+from zenrl.tools.loading import env_config_for, is_exported, is_match_env, load_policy_env, resolve_checkpoint
 
 class ExportedPolicy(torch.nn.Module):
     """Greedy policy for TorchScript: one observation (no batch dim) -> int64 scalar action.
@@ -49,6 +50,8 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
     with a ``zenrl.json`` extra file describing the inputs and the action set. Load it with
     ``torch.jit.load(out)`` (no zenrl needed). ``checkpoint``: a file, or a folder's newest."""
     checkpoint = str(resolve_checkpoint(checkpoint))
+    if is_exported(checkpoint):
+        raise ZenrlError(f"{checkpoint} is already an exported policy; export takes a checkpoint")
     policy, env, cfg = load_policy_env(checkpoint, env_id, env_kwargs)
     try:
         space = env.observation_space
