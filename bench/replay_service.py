@@ -677,7 +677,10 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             stats = StatsWatch(node, keys)
             replay = procs.start(f"replay-{kind}", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
                                                     "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
-                                                    "--set", "replay.capacity=20000", "--log-level", "INFO"])
+                                                    "--set", "replay.capacity=20000", "--log-level", "INFO",
+                                                    # synthetic chunks of no registered env (6 actions, bare
+                                                    # frames): the env checks' cost is --checks-only's
+                                                    "--set", "replay.check_semantics=false"])
             wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
             raw, svc, svc_map = [], [], []
             for r in range(rounds):
