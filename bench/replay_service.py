@@ -24,9 +24,6 @@ Progress goes to stderr; the last stdout line is one JSON object.
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
     python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks
-
-Image mode also runs service rounds with the chunks' arrays all inside the msgpack map (the
-wire form without a tail, docs/protocol.md): ``map_form_ingest_ratio_vs_raw_zenoh``.
     python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
@@ -148,23 +145,14 @@ def shifted(batch: dict[str, np.ndarray], frames: Any, base: int) -> dict[str, n
     return {k: (v + base if k in ("obs", "next_obs") else v) for k, v in batch.items()}
 
 
-def use_wire(wire: str) -> None:
-    """``map``: every array inside the msgpack map (no tail), in this process's encoders."""
-    from zenrl.common import protocol as P
-
-    if wire == "map":
-        P.TAIL_MIN_BYTES = 1 << 62
-
-
 def encoded_pool(seed: int, count: int, actor_id: str, kind: str = "cartpole") -> list[bytes]:
-    """The chunks as the replay client encodes them (in this process's wire form)."""
     from zenrl.common import protocol as P
 
     out = []
     base = 0
     for i, (b, p, f) in enumerate(kind_batches(kind, seed, count)):
         out.append(P.TransitionBatch(actor_id=actor_id, policy_version=0, seq=i, data=shifted(b, f, base), priorities=p,
-                                     frames=f, frame_base=None if f is None else base).encode(tail=True))
+                                     frames=f, frame_base=None if f is None else base).encode())
         base += 0 if f is None else len(f["obs"])
     return out
 
@@ -193,7 +181,6 @@ def role_pub(args: argparse.Namespace) -> int:
 
     stop = threading.Event()
     watch_parent(stop)
-    use_wire(args.wire)
     keys = P.Keys(args.run)
     pool_n = 64 if args.kind == "cartpole" else 16
     sent_warm = 0
@@ -418,14 +405,12 @@ def go(node: Any, keys: Any, n: int) -> float:
     return t
 
 
-def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float, kind: str = "cartpole",
-             wire: str = "tail") -> list[str]:
+def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float, kind: str = "cartpole") -> list[str]:
     return [str(Path(__file__).resolve()), "--role", "pub", "--mode", role_mode, "--router", ep, "--run", run,
-            "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind, "--wire", wire]
+            "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind]
 
 
-def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole",
-              wire: str = "tail") -> dict[str, Any]:
+def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole") -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     rrun = f"{run}-raw{r}"
@@ -434,7 +419,7 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
                                      "--idle", "5", "--max-s", str(duration + 120), "--kind", kind], capture=True)
     wait_until(lambda: node.alive_now(keys.alive_role("rawsub"), 1.0), 60, "raw subscriber")
-    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration, kind, wire), capture=True)
+    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     go(node, keys, N_PUBLISHERS)
     sent = sum(x["sent_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
@@ -469,13 +454,12 @@ def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final
 
 
 def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str, r: int,
-                  duration: float, kind: str = "cartpole", wire: str = "tail") -> dict[str, Any]:
+                  duration: float, kind: str = "cartpole") -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     keys = P.Keys(run)
     sent_watch = SentWatch(node, keys.prefix)
-    pubs = [procs.start(f"svcpub{r}{wire}-{k}", pub_argv("client", ep, run, f"pub{r}{wire}-{k}", 100 + k, duration, kind,
-                                                       wire), capture=True)
+    pubs = [procs.start(f"svcpub{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     # the publishers' warm-up chunks must be in before the clock starts
     wait_until(lambda: len(node.alive_now(keys.alive_role("benchpub"), 1.0)) >= N_PUBLISHERS, 60, "publishers ready")
@@ -682,35 +666,29 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                                                     # frames): the env checks' cost is --checks-only's
                                                     "--set", "replay.check_semantics=false"])
             wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
-            raw, svc, svc_map = [], [], []
+            raw, svc = [], []
             for r in range(rounds):
                 res = raw_round(procs, node, ep, run, r, duration, kind)
                 log(f"[{kind}] round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
                     f"{res['received_chunks']}/{res['sent_chunks']} chunks")
                 raw.append(res)
-                for wire, into in (("tail", svc), ("map", svc_map)):
-                    res = service_round(procs, node, stats, ep, run, r, duration, kind, wire)
-                    log(f"[{kind}] round {r} replay service ({wire}): {res['items_per_s'] or 0:,.0f} items/s, "
-                        f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
-                    into.append(res)
+                res = service_round(procs, node, stats, ep, run, r, duration, kind)
+                log(f"[{kind}] round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
+                    f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
+                svc.append(res)
             procs.stop(replay)
             raw_med = statistics.median(x["items_per_s"] for x in raw)
             svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
             svc_med = statistics.median(svc_rates) if svc_rates else None
-            map_rates = [x["items_per_s"] for x in svc_map if x["items_per_s"]]
-            map_med = statistics.median(map_rates) if map_rates else None
             chunk_bytes = len(encoded_pool(0, 1, "pub0", kind)[0])
             kinds[kind] = {
                 "ingest_ratio_vs_raw_zenoh": None if not svc_med else round(svc_med / raw_med, 3),
-                # the same chunks with every array inside the msgpack map (the wire form before
-                # the tail): what reading the frames in place gains
-                "map_form_ingest_ratio_vs_raw_zenoh": None if not map_med else round(map_med / raw_med, 3),
                 "service_ingest_items_per_s": None if svc_med is None else round(svc_med),
                 "raw_zenoh_items_per_s": round(raw_med),
                 "service_mb_per_s": None if svc_med is None else round(svc_med / IMAGE_CHUNK * chunk_bytes / 1e6, 1),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
                 "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
-                "rounds": {"raw": raw, "service": svc, "service_map_form": svc_map},
+                "rounds": {"raw": raw, "service": svc},
             }
         out.update({
             "kinds": kinds,
@@ -745,7 +723,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--idle", type=float, default=1.5, help=argparse.SUPPRESS)
     ap.add_argument("--max-s", type=float, default=120.0, help=argparse.SUPPRESS)
     ap.add_argument("--kind", choices=["cartpole", *IMAGE_KINDS], default="cartpole", help=argparse.SUPPRESS)
-    ap.add_argument("--wire", choices=["tail", "map"], default="tail", help=argparse.SUPPRESS)
     ap.add_argument("--images", action="store_true",
                     help="image mode: frame-mode chunks of 64x64x3 and of 84x84x4 stacks instead of CartPole chunks")
     args = ap.parse_args(argv)
