@@ -18,7 +18,6 @@ ever unpickled. The README's "Wire protocol" section documents the same thing fo
 
 from __future__ import annotations
 
-import io
 import math
 import re
 from dataclasses import dataclass, field, fields
@@ -181,12 +180,6 @@ _DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
 _WIRE_NAMES = {dt.newbyteorder("<"): name for name, dt in _DTYPES.items()}
 
 
-#: Arrays of at least this many bytes go to the message's tail when a sender asks for one
-#: (``encode(tail=True)``): the receiver then reads them in place, without msgpack copying them.
-TAIL_MIN_BYTES = 64 * 1024
-#: A message with a tail starts with this: a msgpack map (fixmap) whose first key is "tail".
-_TAIL_KEY = b"\xa4tail"
-
 #: Array codecs a sender may declare in the array map (uint8 arrays only).
 CODECS = ("lz4",)
 #: uint8 arrays smaller than this travel raw even when compression is asked for.
@@ -219,41 +212,15 @@ def encode_array(a: np.ndarray, codec: str | None = None) -> dict[str, Any]:
 
 _ARRAY_KEYS = {"dtype", "shape", "data"}
 _PACKED_KEYS = {"dtype", "shape", "data", "codec", "size"}
-_TAIL_ARRAY_KEYS = {"dtype", "shape", "at"}
 
 
-def decode_array(name: str, m: Any, tail: memoryview | None = None) -> np.ndarray:
-    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed).
-    ``tail``: the message's tail, for arrays stored there (``{"dtype", "shape", "at"}``)."""
+def decode_array(name: str, m: Any) -> np.ndarray:
+    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed)."""
     if type(m) is not dict or m.keys() != _ARRAY_KEYS:
         if type(m) is dict and m.keys() == _PACKED_KEYS:
             return _decode_packed(name, m)
-        if type(m) is dict and m.keys() == _TAIL_ARRAY_KEYS:
-            return _decode_in_tail(name, m, tail)
-        raise ProtocolError(name, "must be a map with exactly dtype, shape, data (and codec, size when compressed; "
-                            "or dtype, shape, at in a message with a tail)", "array")
+        raise ProtocolError(name, "must be a map with exactly dtype, shape, data (and codec, size when compressed)", "array")
     dtype, shape, data = m["dtype"], m["shape"], m["data"]
-    dt, expected = _dtype_and_bytes(name, dtype, shape)
-    if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
-        raise ProtocolError(f"{name}.data", "must be bin", "array")
-    if expected != len(data):
-        raise ProtocolError(f"{name}.data", f"holds {len(data)} bytes; dtype {dtype} and shape {shape} need {expected}", "shape")
-    return np.frombuffer(data, dtype=dt).reshape(shape)
-
-
-def _decode_in_tail(name: str, m: dict[str, Any], tail: memoryview | None) -> np.ndarray:
-    """An array stored in the message's tail: a read-only view of its bytes there."""
-    if tail is None:
-        raise ProtocolError(name, "names a place in the tail (at), but the message has no tail", "array")
-    dt, expected = _dtype_and_bytes(name, m["dtype"], m["shape"])
-    at = m["at"]
-    if type(at) is not int or at < 0 or at + expected > len(tail):
-        raise ProtocolError(f"{name}.at", f"{at!r} + {expected} bytes lies outside the {len(tail)}-byte tail", "shape")
-    return np.frombuffer(tail, dtype=dt, count=expected // dt.itemsize, offset=at).reshape(m["shape"])
-
-
-def _dtype_and_bytes(name: str, dtype: Any, shape: Any) -> tuple[np.dtype, int]:
-    """The dtype of a wire array and the byte count its shape needs (both checked)."""
     dt = _DTYPES.get(dtype) if type(dtype) is str else None
     if dt is None:
         raise ProtocolError(f"{name}.dtype", f"{dtype!r} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
@@ -264,7 +231,11 @@ def _dtype_and_bytes(name: str, dtype: Any, shape: Any) -> tuple[np.dtype, int]:
         if type(d) is not int or d < 0:
             raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
         expected *= d
-    return dt, expected
+    if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
+        raise ProtocolError(f"{name}.data", "must be bin", "array")
+    if expected != len(data):
+        raise ProtocolError(f"{name}.data", f"holds {len(data)} bytes; dtype {dtype} and shape {shape} need {expected}", "shape")
+    return np.frombuffer(data, dtype=dt).reshape(shape)
 
 
 def _decode_packed(name: str, m: dict[str, Any]) -> np.ndarray:
@@ -305,22 +276,11 @@ def _check_field_name(name: str, k: Any) -> None:
         _good_field_names.add(k)
 
 
-def encode_arrays(arrays: Mapping[str, np.ndarray], codec: str | None = None, tail: list | None = None) -> dict[str, Any]:
-    return {k: _to_tail(encode_array(np.asarray(v), codec), tail) for k, v in arrays.items()}
+def encode_arrays(arrays: Mapping[str, np.ndarray], codec: str | None = None) -> dict[str, Any]:
+    return {k: encode_array(np.asarray(v), codec) for k, v in arrays.items()}
 
 
-def _to_tail(m: dict[str, Any], tail: list | None) -> dict[str, Any]:
-    """Move a large raw array's bytes to ``tail`` ([bytes so far, buffer, buffer, ...])."""
-    if tail is None or "codec" in m or len(m["data"]) < TAIL_MIN_BYTES:
-        return m
-    at = tail[0]
-    tail.append(m["data"])
-    tail[0] = at + len(m["data"])
-    return {"dtype": m["dtype"], "shape": m["shape"], "at": at}
-
-
-def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int | None = None,
-                  tail: memoryview | None = None) -> dict[str, np.ndarray]:
+def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int | None = None) -> dict[str, np.ndarray]:
     """Decode a map of arrays. With ``batch`` every array's first dimension must equal it."""
     if not isinstance(m, dict) or not m:
         raise ProtocolError(name, "must be a non-empty map of arrays", "array")
@@ -329,7 +289,7 @@ def decode_arrays(name: str, m: Any, *, require_finite: bool = False, batch: int
     out = {}
     for k, v in m.items():
         _check_field_name(name, k)
-        a = decode_array(f"{name}.{k}", v, tail)
+        a = decode_array(f"{name}.{k}", v)
         if batch is not None and (a.ndim == 0 or a.shape[0] != batch):
             raise ProtocolError(f"{name}.{k}", f"batch size {a.shape[:1]} differs from {batch}", "batch")
         if require_finite and a.dtype.kind == "f" and not np.isfinite(a).all():
@@ -365,15 +325,9 @@ class Message:
             _REGISTRY[cls.TYPE] = cls
 
     # -- encode ---------------------------------------------------------------------------
-    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, codec: str | None = None, tail: bool = False) -> bytes:
-        """``codec`` ("lz4" or None): compress the uint8 arrays of the array maps. ``tail``: raw
-        arrays of TAIL_MIN_BYTES or more follow the msgpack map as raw bytes (docs/protocol.md,
-        "Large arrays") and the receiver reads them in place; it needs a receiver of this
-        version (zenrl's replay and learner), not a plain msgpack reader."""
-        parts: list | None = [0] if tail else None
-        env: dict[str, Any] = {"tail": 0} if tail else {}  # the first key: a reader knows before parsing
-        env["v"] = PROTOCOL_VERSION
-        env["t"] = self.TYPE
+    def encode(self, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, codec: str | None = None) -> bytes:
+        """``codec`` ("lz4" or None): compress the uint8 arrays of the array maps."""
+        env: dict[str, Any] = {"v": PROTOCOL_VERSION, "t": self.TYPE}
         for name, kind in _encode_plan(type(self)):
             v = getattr(self, name)
             if v is None and name in self.OMIT_NONE:
@@ -381,15 +335,10 @@ class Message:
             if v is None or kind == 0:
                 env[name] = v
             elif kind == 2:
-                env[name] = encode_arrays(v, codec, parts)
+                env[name] = encode_arrays(v, codec)
             else:
-                env[name] = _to_tail(encode_array(np.asarray(v)), parts)
-        if parts is not None and parts[0] > 0:
-            env["tail"] = parts[0]
-            out = b"".join([msgpack.packb(env, use_bin_type=True), *parts[1:]])
-        else:
-            env.pop("tail", None)
-            out = msgpack.packb(env, use_bin_type=True)
+                env[name] = encode_array(np.asarray(v))
+        out = msgpack.packb(env, use_bin_type=True)
         if len(out) > max_bytes:
             raise ProtocolError("payload", f"{self.TYPE} message of {len(out)} bytes exceeds the cap of {max_bytes} bytes; send smaller chunks", "size")
         return out
@@ -397,22 +346,22 @@ class Message:
     # -- decode ---------------------------------------------------------------------------
     @classmethod
     def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> "Message":
-        env, tail = _unpack(payload, max_bytes)
+        env = _unpack(payload, max_bytes)
         if env["t"] != cls.TYPE:
             raise ProtocolError("t", f"expected message type {cls.TYPE!r}, got {env['t']!r}", "type")
-        return cls._from_envelope(env, tail)
+        return cls._from_envelope(env)
 
     @classmethod
-    def _from_envelope(cls, env: dict[str, Any], tail: memoryview | None = None) -> "Message":
+    def _from_envelope(cls, env: dict[str, Any]) -> "Message":
         names = _field_names(cls)
-        got = env.keys() - {"v", "t", "tail"}
+        got = env.keys() - {"v", "t"}
         missing = sorted(n for n in names - got if not cls.SCHEMA[n].endswith("?"))
         if missing:
             raise ProtocolError(missing[0], f"missing from {cls.TYPE} message", "field")
         unknown = sorted(got - names)
         if unknown:
             raise ProtocolError(str(unknown[0]), f"is not a field of {cls.TYPE} messages", "field")
-        kw = {n: _check(n, cls.SCHEMA[n], env.get(n), tail) for n in names}
+        kw = {n: _check(n, cls.SCHEMA[n], env.get(n)) for n in names}
         msg = cls(**kw)
         msg._validate()
         return msg
@@ -443,46 +392,34 @@ def _field_names(cls: type) -> frozenset[str]:
     return names
 
 
-def _unpack(payload: Any, max_bytes: int) -> tuple[dict[str, Any], memoryview | None]:
-    """The envelope map and, for a message with a tail, a view of the tail's bytes."""
+def _unpack(payload: Any, max_bytes: int) -> dict[str, Any]:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise ProtocolError("payload", f"must be bytes, got {type(payload).__name__}", "malformed")
     if len(payload) > max_bytes:
         raise ProtocolError("payload", f"{len(payload)} bytes exceeds the cap of {max_bytes} bytes", "size")
-    tail = None
     try:
-        if payload[1:6] == _TAIL_KEY and 0x80 <= payload[0] <= 0x8F:
-            # read the map from the front only: msgpack never copies the tail's bytes
-            u = msgpack.Unpacker(io.BytesIO(payload), raw=False, strict_map_key=True, use_list=True,
-                                 read_size=min(16384, max_bytes), max_buffer_size=max_bytes)
-            env = u.unpack()
-            tail = memoryview(payload)[u.tell():]
-        else:
-            env = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
+        env = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
     except Exception as e:  # msgpack raises several unrelated types on garbage
         raise ProtocolError("payload", f"is not valid msgpack ({type(e).__name__})", "malformed") from None
-    if tail is not None and (not isinstance(env, dict) or env.get("tail") != len(tail)):
-        raise ProtocolError("tail", f"declares {env.get('tail') if isinstance(env, dict) else None!r} bytes after the "
-                            f"map; {len(tail)} follow", "size")
     if not isinstance(env, dict):
         raise ProtocolError("payload", f"must be a msgpack map, got {type(env).__name__}", "malformed")
     if env.get("v") != PROTOCOL_VERSION:
         raise ProtocolError("v", f"protocol version {env.get('v')!r} is not supported (this is version {PROTOCOL_VERSION})", "version")
     if not isinstance(env.get("t"), str):
         raise ProtocolError("t", "message type is missing", "type")
-    return env, tail
+    return env
 
 
 def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
     """Decode a message of any registered type."""
-    env, tail = _unpack(payload, max_bytes)
+    env = _unpack(payload, max_bytes)
     cls = _REGISTRY.get(env["t"])
     if cls is None:
         raise ProtocolError("t", f"unknown message type {env['t']!r}", "type")
-    return cls._from_envelope(env, tail)
+    return cls._from_envelope(env)
 
 
-def _check(name: str, kind: str, v: Any, tail: memoryview | None = None) -> Any:
+def _check(name: str, kind: str, v: Any) -> Any:
     optional = kind.endswith("?")
     base = kind.rstrip("?")
     if v is None:
@@ -508,9 +445,9 @@ def _check(name: str, kind: str, v: Any, tail: memoryview | None = None) -> Any:
     if base == "name":
         return check_name(name, v)
     if base == "array":
-        return decode_array(name, v, tail)
+        return decode_array(name, v)
     if base == "arrays":
-        return decode_arrays(name, v, tail=tail)
+        return decode_arrays(name, v)
     if base == "map":
         if not isinstance(v, dict) or len(v) > 1024:
             raise ProtocolError(name, "must be a map of at most 1024 entries", "field")

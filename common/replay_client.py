@@ -82,8 +82,7 @@ class ZenohReplayClient:
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
                                 data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32),
                                 frames=None if frames is None else dict(frames), frame_base=frame_base)
-        # large arrays (image frames) travel in the tail, which the replay reads in place
-        payload = msg.encode(self.max_bytes, self.codec, tail=True)
+        payload = msg.encode(self.max_bytes, self.codec)
         if not self._tx.matching_status.matching:
             # nobody would receive it (replay down, or the router restarting): hold it
             self._backlog.append(payload)

@@ -468,7 +468,7 @@ class ReplayService:
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), self.keys.sample)
             return P.SampleReply(request_id=0, status="not_ready", reason=f"bad request: {e}").encode()
-        return self.sample_reply(req).encode(self.max_bytes, tail=True)  # image batches: read in place
+        return self.sample_reply(req).encode(self.max_bytes)
 
     def sample_reply(self, req: P.SampleRequest) -> P.SampleReply:
         with self._lock:

@@ -54,17 +54,8 @@ def _service(tmp_path=None, **over):
     return ReplayService(load_config(None, [f"replay.{k}={v}" for k, v in sets.items()], environ={}), node=None, run_id="r")
 
 
-def _framed_payload(bf, seq, actor="a0", tail=False):
-    return P.TransitionBatch(actor, seq, seq, bf.data, bf.priorities, frames=bf.frames,
-                             frame_base=bf.frame_base).encode(tail=tail)
-
-
-@pytest.fixture(params=[False, True], ids=["map", "tail"])
-def tail(request, monkeypatch):
-    """Both wire forms of a chunk: arrays in the map, and (every array, here) in the tail."""
-    if request.param:
-        monkeypatch.setattr(P, "TAIL_MIN_BYTES", 1)
-    return request.param
+def _framed_payload(bf, seq, actor="a0"):
+    return P.TransitionBatch(actor, seq, seq, bf.data, bf.priorities, frames=bf.frames, frame_base=bf.frame_base).encode()
 
 
 def _check_samples(svc, plain_by_key):
@@ -75,12 +66,12 @@ def _check_samples(svc, plain_by_key):
 
 
 @pytest.mark.parametrize("k", [0, 4])
-def test_frame_chunks_sample_back_like_plain_ones(k, tail):
+def test_frame_chunks_sample_back_like_plain_ones(k):
     svc = _service()
     plain_by_key = {}
     for seq, (bp, bf) in enumerate(_stream(k, 60)):
         first = svc.buffer.inserts_total if svc.buffer is not None else 0
-        assert svc.ingest(_framed_payload(bf, seq, tail=tail)) == len(bp)
+        assert svc.ingest(_framed_payload(bf, seq)) == len(bp)
         for r in range(len(bp)):
             plain_by_key[first + r] = {**{f: v[r] for f, v in bp.data.items()}, POLICY_VERSION_FIELD: seq}
     assert svc.buffer.size == len(plain_by_key)
@@ -90,12 +81,12 @@ def test_frame_chunks_sample_back_like_plain_ones(k, tail):
     assert svc.stats_values()["frames_stored"] == svc.buffer.frames_stored
 
 
-def test_durable_restore_of_frame_chunks(tmp_path, tail):
+def test_durable_restore_of_frame_chunks(tmp_path):
     a = _service(tmp_path)
     plain_by_key = {}
     for seq, (bp, bf) in enumerate(_stream(4, 50, seed=3)):
         first = a.buffer.inserts_total if a.buffer is not None else 0
-        a.ingest(_framed_payload(bf, seq, tail=tail))
+        a.ingest(_framed_payload(bf, seq))
         for r in range(len(bp)):
             plain_by_key[first + r] = {f: v[r] for f, v in bp.data.items()}
     a.shutdown()
