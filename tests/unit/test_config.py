@@ -86,3 +86,20 @@ def test_cpu_placement_off_survives_yaml(tmp_path):
     assert load_config(None, ["cpu_placement=auto"]).cpu_placement == "auto"
     with pytest.raises(ConfigError, match="cpu_placement"):
         load_config(None, ["cpu_placement=sometimes"])
+
+
+@pytest.mark.parametrize("path", sorted(str(p) for p in (__import__("pathlib").Path(__file__).resolve().parents[2]
+                                                          / "configs").glob("*.yaml")))
+def test_every_shipped_config_loads_and_builds_its_env(path):
+    """A shipped config with a typo or a stale option fails here, not in a user's run."""
+    from zenrl.common.env_factory import make_env
+
+    cfg = load_config(path, environ={})
+    if cfg.env.id.startswith("zenrl/Atari"):
+        pytest.importorskip("ale_py", reason="Atari envs need the atari extra")
+    env = make_env(cfg.env)
+    try:
+        obs, _ = env.reset(seed=0)
+        assert env.observation_space.contains(obs)
+    finally:
+        env.close()
