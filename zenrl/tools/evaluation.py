@@ -258,7 +258,7 @@ def render_table(summary: Mapping[str, Any]):
     for c in ("opponent", "n", "W/D/L", "win rate [95% CI]", "score diff [95% CI]"):
         t.add_column(c, justify="left" if c == "opponent" else "right", no_wrap=True)
     for r in summary["rows"]:
-        t.add_row(r["opponent"], str(r["episodes"]), f"{r['wins']}/{r['draws']}/{r['losses']}",
+        t.add_row(Path(r["opponent"]).name, str(r["episodes"]), f"{r['wins']}/{r['draws']}/{r['losses']}",
                   f"{r['win_rate']:.0%} {_fmt_ci(r['win_rate_ci95'], True)}",
                   f"{r['score_diff_mean']:+.2f} {_fmt_ci(r['score_diff_ci95'])}".strip())
     tot = summary["total"]
