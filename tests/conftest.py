@@ -49,6 +49,19 @@ def zenrl_pids(run_id: str, role: str | None = None, ident: str | None = None) -
     return sorted(pids)
 
 
+def replay_stats_reader(node, keys) -> Callable[[], dict | None]:
+    """``get()`` -> the newest stats values the replay service published (None if none new)."""
+    from zenrl.common import protocol as P
+
+    latest = node.subscribe_latest(keys.stats("replay", "replay"))
+
+    def get():
+        raw = latest.take()
+        return None if raw is None else P.Stats.decode(raw).values
+
+    return get
+
+
 def wait_until(cond: Callable[[], object], timeout_s: float, what: str, interval_s: float = 0.1):
     """Poll ``cond`` until it returns something truthy; fail naming ``what`` at the deadline."""
     deadline = time.monotonic() + timeout_s

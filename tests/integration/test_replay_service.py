@@ -9,19 +9,9 @@ from zenrl.common import protocol as P
 from zenrl.common.errors import NotReady
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
-from tests.conftest import wait_until
+from tests.conftest import replay_stats_reader, wait_until
 
 pytestmark = pytest.mark.integration
-
-
-def _stats(node, keys):
-    latest = node.subscribe_latest(keys.stats("replay", "replay"))
-
-    def get():
-        raw = latest.take()
-        return None if raw is None else P.Stats.decode(raw).values
-
-    return get
 
 
 def test_ingest_sample_update_and_reject(router, run_id, procs):
@@ -33,7 +23,7 @@ def test_ingest_sample_update_and_reject(router, run_id, procs):
                            "--set", "replay.max_abs_reward=1e8"])
     with Node(router, 10.0) as node:
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 0.5), 60, "the replay's liveliness token")
-        stats = _stats(node, keys)
+        stats = replay_stats_reader(node, keys)
         client = ZenohReplayClient(node, keys, "learner", timeout_s=5.0)
         # not ready yet: answered at once, never a hang
         with pytest.raises(NotReady, match="min_size"):

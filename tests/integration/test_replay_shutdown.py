@@ -12,7 +12,7 @@ import pytest
 
 from zenrl.common import protocol as P
 from zenrl.common.transport import Node
-from tests.conftest import wait_until
+from tests.conftest import replay_stats_reader, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -26,23 +26,13 @@ def _replay_args(router, run_id, log_dir):
             "--set", "replay.drop_after_s=2.0", "--set", "replay.max_abs_reward=1e12", "--set", "replay.snapshot_interval_s=60"]
 
 
-def _stats_reader(node, keys):
-    latest = node.subscribe_latest(keys.stats("replay", "replay"))
-
-    def get():
-        raw = latest.take()
-        return None if raw is None else P.Stats.decode(raw).values
-
-    return get
-
-
 def test_sigterm_under_ingest_load_flushes_and_exits(router, run_id, procs, tmp_path):
     keys = P.Keys(run_id)
     log_dir = tmp_path / "replay-log"
     replay = procs.zenrl("replay", _replay_args(router, run_id, log_dir))
     with Node(router, 10.0) as node:
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 0.5), 60, "the replay's liveliness token")
-        stats = _stats_reader(node, keys)
+        stats = replay_stats_reader(node, keys)
         for i in range(4):
             procs.start(f"pub{i}", ["tests/integration/procs.py", "publish", "--router", router, "--run", run_id,
                                     "--actor", f"p{i}", "--chunks", "1000000", "--chunk", "2000", "--seed", str(i + 1)])
@@ -71,7 +61,7 @@ def test_sigterm_under_ingest_load_flushes_and_exits(router, run_id, procs, tmp_
     # a restarted replay on the same log recovers exactly what the stopped one inserted
     procs.zenrl("replay2", _replay_args(router, run_id, log_dir))
     with Node(router, 10.0) as node:
-        stats = _stats_reader(node, keys)
+        stats = replay_stats_reader(node, keys)
         s = wait_until(lambda: (v := stats()) and v, 60, "the restarted replay's stats")
     assert s["restored_items"] == inserted and s["inserted_total"] == inserted, json.dumps(s)
     assert s["log_torn_records"] == 0

@@ -14,18 +14,8 @@ NAMES = geo.TARGET_NAMES
 
 
 @pytest.fixture
-def make():
-    envs = []
-
-    def _make(**kw):
-        kw.setdefault("lidar_noise", 0.0)
-        env = BurgerWarEnv(**kw)
-        envs.append(env)
-        return env
-
-    yield _make
-    for e in envs:
-        e.close()
+def make(make_bw):
+    return lambda **kw: make_bw(**{"lidar_noise": 0.0, **kw})
 
 
 # ------------------------------------------------------------------ marker points

@@ -13,17 +13,8 @@ from zenrl.common.envs.burgerwar import BurgerWarEnv
 
 
 @pytest.fixture
-def make():
-    envs = []
-
-    def _make(**kw):
-        env = BurgerWarEnv(**kw)
-        envs.append(env)
-        return env
-
-    yield _make
-    for e in envs:
-        e.close()
+def make(make_bw):
+    return make_bw
 
 
 def test_registered_ids_and_spaces():

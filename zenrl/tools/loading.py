@@ -22,7 +22,7 @@ from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
-from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config
+from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config, load_policy
 
 log = logging.getLogger(__name__)
 
@@ -143,10 +143,9 @@ def load_player(path: str | os.PathLike[str], observation_space: gym.Space, acti
         player.check_spaces(observation_space, action_space)
         return player
     try:
-        net = build_network(read_checkpoint(path), observation_space, action_space)
+        return load_policy(path, observation_space, action_space)
     except ZenrlError as e:
         raise ZenrlError(f"{path}: {e}") from None
-    return GreedyPolicy(net, num_actions(action_space), name=Path(path).name)
 
 
 def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = None,
