@@ -11,6 +11,9 @@ separate OS process, all Zenoh clients of that router):
     same BLOCK publisher settings) from 2 publisher processes to a raw Zenoh subscriber process
     that only takes the bytes (``payload.to_bytes()``) and counts, measured at the receiver
     (first to last receipt);
+  * ``store_only`` (``--images``) - the ceiling of any receiver that keeps what it gets: the
+    same publishers as ``ingest`` (``ZenohReplayClient``) to a subscriber process that takes the
+    bytes and copies them into a ring of the replay's frame bytes, nothing else;
   * ``checks`` - CPU time per chunk of the service's ingest path (decode, validate, insert) with
     ``replay.check_semantics`` on and off, in process: ``checks_overhead_ratio`` (target <= 1.05);
   * ``sample`` - batches/s of 512 served by the replay to one client process keeping 4 requests
@@ -59,6 +62,9 @@ IMAGE_STACK = 4
 #: --images: the Burger War camera (64x64x3, one frame per observation) and Atari-style
 #: 4-frame stacks of 84x84 frames, both in frame mode (docs/protocol.md)
 IMAGE_KINDS = ("cam64", "atari84")
+#: --images: the replay's capacity (transitions); the store-only receiver gets a ring of the
+#: same frame bytes, so both write into memory far larger than the caches
+IMAGE_CAPACITY = 20000
 
 
 def chunk_items(kind: str) -> int:
@@ -130,6 +136,14 @@ def image_batches(kind: str, seed: int, count: int) -> list[tuple[dict[str, np.n
                  "terminated": rng.random(b) < 0.01, "truncated": np.zeros(b, bool), "n": np.full(b, n, np.uint8)}
         out.append((batch, (rng.random(b) + 0.01).astype(np.float32), {"obs": frames}))
     return out
+
+
+def ring_mb(kind: str) -> float:
+    """MB of frames the replay keeps for IMAGE_CAPACITY transitions of ``kind`` (one new frame
+    per transition): the store-only receiver's ring."""
+    b, p, f = image_batches(kind, 0, 1)[0]
+    frame = f["obs"][0].nbytes
+    return IMAGE_CAPACITY * frame / 1e6
 
 
 def kind_batches(kind: str, seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray, Any]]:
@@ -251,18 +265,28 @@ def role_pub(args: argparse.Namespace) -> int:
 
 def role_rawsub(args: argparse.Namespace) -> int:
     """Count messages on ``transitions/*``; print counts and first/last receipt times after the
-    stream has been idle for ``--idle`` s (or on SIGTERM)."""
+    stream has been idle for ``--idle`` s (or on SIGTERM). ``--store-mb`` > 0: also stand in for
+    the replay (its liveliness token, for client-mode publishers) and, from 1 MB, copy each
+    payload into a ring of that size (pre-touched)."""
     from zenrl.common import protocol as P
     from zenrl.common.transport import open_session
 
     stop = threading.Event()
     watch_parent(stop)
     keys = P.Keys(args.run)
-    st = {"n": 0, "bytes": 0, "first": None, "last": None}
+    st = {"n": 0, "bytes": 0, "first": None, "last": None, "off": 0}
     lock = threading.Lock()
+    store = None
+    if args.store_mb >= 1:
+        store = np.ones(int(args.store_mb * 1e6), np.uint8)  # touched: no first-touch faults while measured
 
     def cb(sample: Any) -> None:
         data = sample.payload.to_bytes()
+        if store is not None:
+            a = np.frombuffer(data, np.uint8)
+            o = st["off"] if st["off"] + a.size <= store.size else 0
+            store[o:o + a.size] = a
+            st["off"] = o + a.size
         t = time.perf_counter()
         with lock:
             if st["first"] is None:
@@ -275,9 +299,15 @@ def role_rawsub(args: argparse.Namespace) -> int:
     try:
         sub = session.declare_subscriber(keys.transitions_all, cb)
         expect: list[int] = []
+        def on_go(_s: Any) -> None:  # a client-mode publisher's warm-up chunk came before: not counted
+            with lock:
+                st.update(n=0, bytes=0, first=None, last=None)
+
+        go_sub = session.declare_subscriber(f"{keys.prefix}/bench/go", on_go)
         exp_sub = session.declare_subscriber(f"{keys.prefix}/bench/expect",
                                              lambda smp: expect.append(int(smp.payload.to_bytes())))
         token = session.liveliness().declare_token(keys.alive("rawsub", "rawsub"))  # keep a reference
+        token2 = session.liveliness().declare_token(keys.alive("replay", "storesub")) if args.store_mb > 0 else None
         deadline = time.monotonic() + args.max_s
         while not stop.wait(0.05):
             with lock:
@@ -289,7 +319,10 @@ def role_rawsub(args: argparse.Namespace) -> int:
             if time.monotonic() > deadline:
                 break
         exp_sub.undeclare()
+        go_sub.undeclare()
         token.undeclare()
+        if token2 is not None:
+            token2.undeclare()
         sub.undeclare()
     finally:
         session.close()
@@ -410,16 +443,18 @@ def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: f
             "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind]
 
 
-def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole") -> dict[str, Any]:
+def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole",
+              store_mb: float = 0.0, pub_mode: str = "raw") -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     rrun = f"{run}-raw{r}"
     keys = P.Keys(rrun)
     sent_watch = SentWatch(node, keys.prefix)
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
-                                     "--idle", "5", "--max-s", str(duration + 120), "--kind", kind], capture=True)
+                                     "--idle", "5", "--max-s", str(duration + 120), "--kind", kind,
+                                     "--store-mb", str(store_mb)], capture=True)
     wait_until(lambda: node.alive_now(keys.alive_role("rawsub"), 1.0), 60, "raw subscriber")
-    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv("raw", ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
+    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv(pub_mode, ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     go(node, keys, N_PUBLISHERS)
     sent = sum(x["sent_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
@@ -661,23 +696,29 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             stats = StatsWatch(node, keys)
             replay = procs.start(f"replay-{kind}", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
                                                     "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
-                                                    "--set", "replay.capacity=20000", "--log-level", "INFO",
+                                                    "--set", f"replay.capacity={IMAGE_CAPACITY}", "--log-level", "INFO",
                                                     # synthetic chunks of no registered env (6 actions, bare
                                                     # frames): the env checks' cost is --checks-only's
                                                     "--set", "replay.check_semantics=false"])
             wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
-            raw, svc = [], []
+            raw, store, svc = [], [], []
+            frames_mb = ring_mb(kind)
             for r in range(rounds):
                 res = raw_round(procs, node, ep, run, r, duration, kind)
                 log(f"[{kind}] round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
                     f"{res['received_chunks']}/{res['sent_chunks']} chunks")
                 raw.append(res)
+                res = raw_round(procs, node, ep, f"{run}s", r, duration, kind, store_mb=frames_mb, pub_mode="client")
+                log(f"[{kind}] round {r} store-only receiver: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
+                    f"{res['received_chunks']}/{res['sent_chunks']} chunks")
+                store.append(res)
                 res = service_round(procs, node, stats, ep, run, r, duration, kind)
                 log(f"[{kind}] round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
                     f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
                 svc.append(res)
             procs.stop(replay)
             raw_med = statistics.median(x["items_per_s"] for x in raw)
+            store_med = statistics.median(x["items_per_s"] for x in store)
             svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
             svc_med = statistics.median(svc_rates) if svc_rates else None
             chunk_bytes = len(encoded_pool(0, 1, "pub0", kind)[0])
@@ -685,10 +726,14 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 "ingest_ratio_vs_raw_zenoh": None if not svc_med else round(svc_med / raw_med, 3),
                 "service_ingest_items_per_s": None if svc_med is None else round(svc_med),
                 "raw_zenoh_items_per_s": round(raw_med),
+                # the ceiling of any receiver that keeps what it gets, on this machine
+                "store_only_ratio_vs_raw_zenoh": round(store_med / raw_med, 3),
+                "store_only_items_per_s": round(store_med),
+                "service_fraction_of_store_only": None if not svc_med else round(svc_med / store_med, 3),
                 "service_mb_per_s": None if svc_med is None else round(svc_med / IMAGE_CHUNK * chunk_bytes / 1e6, 1),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
                 "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
-                "rounds": {"raw": raw, "service": svc},
+                "rounds": {"raw": raw, "store_only": store, "service": svc},
             }
         out.update({
             "kinds": kinds,
@@ -700,6 +745,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             **machine_info(t_start),
         })
         for kind in IMAGE_KINDS:  # last keys of the JSON line: the ratios
+            out[f"{kind}_store_only_ratio_vs_raw_zenoh"] = kinds[kind]["store_only_ratio_vs_raw_zenoh"]
             out[f"{kind}_ingest_ratio_vs_raw_zenoh"] = kinds[kind]["ingest_ratio_vs_raw_zenoh"]
     except BaseException as e:
         record_error(out, e)
@@ -722,6 +768,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=1.0, help=argparse.SUPPRESS)
     ap.add_argument("--idle", type=float, default=1.5, help=argparse.SUPPRESS)
     ap.add_argument("--max-s", type=float, default=120.0, help=argparse.SUPPRESS)
+    ap.add_argument("--store-mb", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--kind", choices=["cartpole", *IMAGE_KINDS], default="cartpole", help=argparse.SUPPRESS)
     ap.add_argument("--images", action="store_true",
                     help="image mode: frame-mode chunks of 64x64x3 and of 84x84x4 stacks instead of CartPole chunks")
