@@ -38,7 +38,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -65,6 +65,17 @@ class _History:
     counts: deque
     gbases: deque
     end: int = 0  # one past the last frame id received
+
+
+@dataclass(frozen=True)
+class FrameChunk:
+    """One actor's chunk for :meth:`FrameReplay.insert_many` (the arguments of ``insert``)."""
+    stream: str
+    frame_base: int
+    frames: Mapping[str, np.ndarray]
+    batch: Mapping[str, np.ndarray]
+    refs: Mapping[str, np.ndarray]
+    priorities: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -229,59 +240,140 @@ class FrameReplay:
             SpecMismatch: frames, ids or columns do not match the store (nothing is stored).
             ValueError: bad priorities (nothing is stored).
         """
-        n_f = self.check(frames, refs)
-        if isinstance(frame_base, bool) or not isinstance(frame_base, (int, np.integer)) or frame_base < 0:
-            raise ValueError(f"frame_base must be an int >= 0, got {frame_base!r}")
-        frame_base = int(frame_base)
-        n = self._inner._validate_batch({**batch, **{GKEY_PREFIX + f: self._gkey_shape(f, refs[f]) for f in refs}})
-        if priorities is not None:
-            priorities = _check_priorities(priorities, n, "priorities")
-        for f in refs:
-            if refs[f].shape[0] != n:
-                raise SpecMismatch(f"frame ids {f}: batch size {refs[f].shape[0]} differs from {n}")
-        hist = self._streams.get(stream)
-        if hist is None or frame_base < hist.end:  # new actor, or one that restarted
-            hist = self._streams[stream] = _History(deque(), deque(), deque())
-        if n_f:
-            self._store_frames(frames, n_f)
-            hist.bases.append(frame_base)
-            hist.counts.append(n_f)
-            hist.gbases.append(self._frames_total - n_f)
-            hist.end = frame_base + n_f
-            floor = self._frames_total - self._fcap
-            while hist.bases and (hist.gbases[0] + hist.counts[0] <= floor or len(hist.bases) > MAX_HISTORY):
-                hist.bases.popleft()
-                hist.counts.popleft()
-                hist.gbases.popleft()
-        gk = {f: self._resolve(hist, np.asarray(ids, np.int64)) for f, ids in refs.items()}
-        ok = None
-        for g in gk.values():
-            good = g >= 0 if g.ndim == 1 else (g >= 0).all(axis=1)
-            ok = good if ok is None else ok & good
-        dropped = int(n - np.count_nonzero(ok)) if n else 0
-        data = dict(batch)
-        for f, g in gk.items():
-            data[GKEY_PREFIX + f] = g if g.ndim == 2 else g[:, None]
-        if dropped:
-            self.unresolved += dropped
-            data = {k: v[ok] for k, v in data.items()}
-            if priorities is not None:
-                priorities = priorities[ok]
-        keys = self._inner.insert(data, priorities)
-        if keys.size:
-            stored = keys[-min(keys.size, self._inner.capacity):]
-            m = stored.size
-            for f in gk:
-                g = data[GKEY_PREFIX + f][-m:]
-                np.maximum.at(self._last_ref, (g % self._fcap).ravel(), np.repeat(stored, g.shape[1]))
-        return InsertResult(keys, dropped)
+        res = self.insert_many([FrameChunk(stream, frame_base, frames, batch, refs, priorities)])[0]
+        if isinstance(res, Exception):
+            raise res
+        return res
+
+    def insert_many(self, chunks: Sequence["FrameChunk"]) -> list[InsertResult | SpecMismatch | ValueError]:
+        """Store several chunks, in order, with exactly the outcome of one :meth:`insert` per
+        chunk (the same keys, drops and evictions), but one transition insert, one eviction and
+        one reference update for all of them: the per-call cost is paid once per call.
+
+        Returns, per chunk, its :class:`InsertResult`, or the ``SpecMismatch`` / ``ValueError``
+        that refused it (a refused chunk stores nothing; the others are unaffected)."""
+        out: list[Any] = [None] * len(chunks)
+        todo: list[tuple[int, FrameChunk, int, int]] = []
+        for i, c in enumerate(chunks):
+            try:
+                todo.append((i, c, *self._precheck(c)))
+            except (SpecMismatch, ValueError) as e:
+                out[i] = e
+        # groups whose frames fit the ring once (a chunk alone always does: check())
+        group: list[tuple[int, FrameChunk, int, int]] = []
+        nf = 0
+        for t in todo:
+            if group and nf + t[2] > self._fcap:
+                self._insert_group(group, out)
+                group, nf = [], 0
+            group.append(t)
+            nf += t[2]
+        if group:
+            self._insert_group(group, out)
+        return out
+
+    def _precheck(self, c: "FrameChunk") -> tuple[int, int]:
+        """Everything about one chunk that can refuse it; returns ``(frame count, items)``."""
+        n_f = self.check(c.frames, c.refs)
+        fb = c.frame_base
+        if isinstance(fb, bool) or not isinstance(fb, (int, np.integer)) or fb < 0:
+            raise ValueError(f"frame_base must be an int >= 0, got {fb!r}")
+        n = self._inner._validate_batch({**c.batch, **{GKEY_PREFIX + f: self._gkey_shape(f, c.refs[f]) for f in c.refs}})
+        if c.priorities is not None:
+            _check_priorities(c.priorities, n, "priorities")
+        for f in c.refs:
+            if c.refs[f].shape[0] != n:
+                raise SpecMismatch(f"frame ids {f}: batch size {c.refs[f].shape[0]} differs from {n}")
+        return n_f, n
+
+    def _insert_group(self, group: list[tuple[int, "FrameChunk", int, int]], out: list[Any]) -> None:
+        """Chunks that passed :meth:`_precheck`, whose frames together fit the ring once."""
+        # Older transitions that reference a frame any of these chunks overwrite go first
+        # (one chunk at a time would evict them chunk by chunk: the same items).
+        self._evict_for(sum(t[2] for t in group))
+        mp = self._inner.max_priority
+        cols: list[dict[str, np.ndarray]] = []
+        prios: list[np.ndarray] = []
+        given = False
+        counts: list[tuple[int, int, int]] = []  # (chunk index, stored, dropped)
+        for i, c, n_f, n in group:
+            fb = int(c.frame_base)
+            hist = self._streams.get(c.stream)
+            if hist is None or fb < hist.end:  # new actor, or one that restarted
+                hist = self._streams[c.stream] = _History(deque(), deque(), deque())
+            if n_f:
+                self._copy_frames(c.frames, n_f)
+                hist.bases.append(fb)
+                hist.counts.append(n_f)
+                hist.gbases.append(self._frames_total - n_f)
+                hist.end = fb + n_f
+                floor = self._frames_total - self._fcap
+                while hist.bases and (hist.gbases[0] + hist.counts[0] <= floor or len(hist.bases) > MAX_HISTORY):
+                    hist.bases.popleft()
+                    hist.counts.popleft()
+                    hist.gbases.popleft()
+            gk = {f: self._resolve(hist, np.asarray(ids, np.int64)) for f, ids in c.refs.items()}
+            ok = None
+            for g in gk.values():
+                good = g >= 0 if g.ndim == 1 else (g >= 0).all(axis=1)
+                ok = good if ok is None else ok & good
+            dropped = int(n - np.count_nonzero(ok)) if n else 0
+            data = dict(c.batch)
+            for f, g in gk.items():
+                data[GKEY_PREFIX + f] = g if g.ndim == 2 else g[:, None]
+            p = c.priorities
+            if p is None:
+                p = np.full(n, mp, np.float64)  # what insert() alone would give: the running max
+            else:
+                p = np.asarray(p, np.float64).reshape(-1)
+                given = True
+                if n:
+                    mp = max(mp, float(p.max()))
+            if dropped:
+                self.unresolved += dropped
+                data = {k: v[ok] for k, v in data.items()}
+                p = p[ok]
+            cols.append(data)
+            prios.append(p)
+            counts.append((i, n - dropped, dropped))
+        if len(cols) == 1:
+            data, p = cols[0], prios[0]
+        else:
+            data = {k: np.concatenate([d[k] for d in cols]) for k in cols[0]}
+            p = np.concatenate(prios)
+        keys = self._inner.insert(data, p if given else None)
+        off = 0
+        for i, m, dropped in counts:
+            out[i] = InsertResult(keys[off:off + m], dropped)
+            off += m
+        if not keys.size:
+            return
+        # A transition whose frame a later chunk of this group overwrote: what that chunk's
+        # insert() would have done, evict it with everything older.
+        floor = self._frames_total - self._fcap
+        live = keys >= keys[-1] - (self._inner.capacity - 1)
+        gcols = [data[GKEY_PREFIX + f] for f in self._ref_stack]
+        if floor > 0:
+            lost = np.zeros(keys.size, bool)
+            for g in gcols:
+                lost |= (g < floor).any(axis=1)
+            if lost.any():
+                self.evicted_by_frames += self._inner.evict_before(int(keys[lost].max()) + 1)
+                live &= keys > keys[lost].max()
+        if live.any():
+            kept = keys[live]
+            for g in gcols:
+                gl = g[live]
+                np.maximum.at(self._last_ref, (gl % self._fcap).ravel(), np.repeat(kept, gl.shape[1]))
 
     def _gkey_shape(self, f: str, ids: np.ndarray) -> np.ndarray:
         """A zero-size stand-in with the shape the column will have (for batch validation)."""
         k = max(self._ref_stack[f], 1)
         return np.broadcast_to(np.zeros((), np.int64), (ids.shape[0], k))
 
-    def _store_frames(self, frames: Mapping[str, np.ndarray], n_f: int) -> None:
+    def _evict_for(self, n_f: int) -> None:
+        """Before ``n_f`` new frames go in: evict the transitions that reference a frame in the
+        slots they overwrite (and, FIFO, every older one)."""
         cap = self._fcap
         start = self._frames_total
         new_floor = start + n_f - cap
@@ -292,7 +384,10 @@ class FrameReplay:
             if newest >= 0:
                 self.evicted_by_frames += self._inner.evict_before(newest + 1)
             self._last_ref[slots] = -1
-        s0 = start % cap
+
+    def _copy_frames(self, frames: Mapping[str, np.ndarray], n_f: int) -> None:
+        cap = self._fcap
+        s0 = self._frames_total % cap
         n1 = min(n_f, cap - s0)
         for t, ring in self._frames.items():
             src = frames[t]

@@ -49,7 +49,7 @@ from zenrl.common.transport import Node
 from zenrl.replay.buffer import InMemoryReplay
 from zenrl.replay.checks import ChunkChecker, Quarantine
 from zenrl.replay.durable import ReplayLog
-from zenrl.replay.frames import FrameReplay
+from zenrl.replay.frames import FrameChunk, FrameReplay
 
 log = logging.getLogger(__name__)
 
@@ -256,17 +256,18 @@ class ReplayService:
         per-call cost is paid once per batch, not per chunk; only when the batch fails are its
         chunks checked one by one to find and reject the bad ones."""
         good: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]] = []
-        framed = 0
+        framed_msgs: list[tuple[bytes, P.TransitionBatch, str]] = []
         for payload, source in items:
             try:
                 msg = P.TransitionBatch.decode(payload, self.max_bytes)
             except ProtocolError as e:
                 self._reject(e.reason, str(e), source)
                 continue
-            if msg.frames is not None:  # frame mode: chunk by chunk, in arrival order
-                framed += self._ingest_frames(payload, msg, source)
+            if msg.frames is not None:  # frame mode
+                framed_msgs.append((payload, msg, source))
                 continue
             good.append((payload, msg, self._with_meta(msg), source))
+        framed = self._ingest_frames(framed_msgs) if framed_msgs else 0
         if not good:
             return framed
         with self._lock:
@@ -319,45 +320,59 @@ class ReplayService:
         self.inserted.add(n)
         return n + framed
 
-    def _ingest_frames(self, payload: bytes, msg: P.TransitionBatch, source: str) -> int:
-        """Check and insert one frame-mode chunk (and log it: later chunks may name its frames)."""
+    def _ingest_frames(self, chunks: list[tuple[bytes, P.TransitionBatch, str]]) -> int:
+        """Check and insert frame-mode chunks, in arrival order, as one ``insert_many`` (and log
+        each: later chunks may name its frames). A bad chunk is rejected alone. Returns the items
+        inserted."""
+        inserted = 0
         with self._lock:
-            if self.checker is not None:
-                why = self.checker.check_scalars(msg.data, msg.priorities) or self.checker.check_frames(msg.frames)
-                if why is not None:
-                    self._reject(why.reason, why.detail, source, locked=True)
-                    return 0
-            try:
-                res = self._insert_frames(msg, source=source)
-            except (ValueError, SpecMismatch) as e:
-                self._reject("spec", str(e), source, locked=True)
+            todo: list[tuple[bytes, P.TransitionBatch, str, FrameChunk]] = []
+            for payload, msg, source in chunks:
+                if self.checker is not None:
+                    why = self.checker.check_scalars(msg.data, msg.priorities) or self.checker.check_frames(msg.frames)
+                    if why is not None:
+                        self._reject(why.reason, why.detail, source, locked=True)
+                        continue
+                fc = self._frame_chunk(msg, source)
+                if fc is not None:
+                    todo.append((payload, msg, source, fc))
+            if not todo:
                 return 0
-            if res is None:
-                return 0
-            if res.dropped:
-                self.rejects.reject("unresolved_frames", f"{res.dropped} transitions name frames this replay does not "
-                                    "hold (a lost chunk, or evicted); dropped", msg.actor_id)
+            results = self.buffer.insert_many([t[3] for t in todo])
+            for (payload, msg, source, _), res in zip(todo, results):
+                if isinstance(res, (ValueError, SpecMismatch)):
+                    self._reject("spec", str(res), source, locked=True)
+                    continue
+                if res.dropped:
+                    self.rejects.reject("unresolved_frames", f"{res.dropped} transitions name frames this replay does "
+                                        "not hold (a lost chunk, or evicted); dropped", msg.actor_id)
+                if self.journal is not None:
+                    first = int(res.keys[0]) if res.keys.size else self.buffer.inserts_total
+                    self.journal.append(first, int(res.keys.size), payload)
+                inserted += int(res.keys.size)
             if self.journal is not None:
-                first = int(res.keys[0]) if res.keys.size else self.buffer.inserts_total
-                self.journal.append(first, int(res.keys.size), payload)
                 if self.journal.maybe_flush():
                     self.journal.prune(self.buffer.inserts_total - self.buffer.capacity)
                 if time.monotonic() - self._last_snapshot >= self.rcfg.snapshot_interval_s:
                     self.snapshot()
-        self.inserted.add(int(res.keys.size))
-        return int(res.keys.size)
+        self.inserted.add(inserted)
+        return inserted
 
-    def _insert_frames(self, msg: P.TransitionBatch, first_key: int | None = None, source: str = ""):
-        """Frame-mode insert (caller holds the lock); allocates a FrameReplay on the first
-        chunk. Returns the InsertResult, or None when rejected."""
+    def _frame_chunk(self, msg: P.TransitionBatch, source: str = "", first_key: int | None = None) -> FrameChunk | None:
+        """One frame-mode chunk as the store takes it (caller holds the lock); allocates a
+        FrameReplay on the first chunk. None when rejected (the rejection is counted)."""
         refs = msg.frame_refs()
         data = self._with_meta(msg)
         batch = {k: v for k, v in data.items() if k not in refs}
         if self.buffer is None:
             ref_stack = {k: (0 if v.ndim == 1 else int(v.shape[1])) for k, v in refs.items()}
-            self.buffer = FrameReplay(spec_of_batch(batch), spec_of_batch(msg.frames), ref_stack, self.rcfg.capacity,
-                                      frames_per_item=self.rcfg.frames_per_item, max_bytes=self.rcfg.max_bytes,
-                                      alpha=self.rcfg.alpha, uniform=self.rcfg.uniform, seed=self.cfg.seed)
+            try:
+                self.buffer = FrameReplay(spec_of_batch(batch), spec_of_batch(msg.frames), ref_stack, self.rcfg.capacity,
+                                          frames_per_item=self.rcfg.frames_per_item, max_bytes=self.rcfg.max_bytes,
+                                          alpha=self.rcfg.alpha, uniform=self.rcfg.uniform, seed=self.cfg.seed)
+            except (ValueError, SpecMismatch) as e:
+                self._reject("spec", str(e), source or msg.actor_id, locked=True)
+                return None
             if first_key is not None:
                 self.buffer.start_at(first_key)
             log.info("replay storage allocated (frame mode): %d items, %d frames, %d bytes per item",
@@ -366,7 +381,15 @@ class ReplayService:
             self._reject("spec", "a frame-mode chunk, but this replay stores full observations", source or msg.actor_id,
                          locked=True)
             return None
-        return self.buffer.insert(msg.actor_id, msg.frame_base, msg.frames, batch, refs, msg.priorities)
+        return FrameChunk(msg.actor_id, msg.frame_base, msg.frames, batch, refs, msg.priorities)
+
+    def _insert_frames(self, msg: P.TransitionBatch, first_key: int | None = None):
+        """One frame-mode chunk from the log (caller holds the lock, or is restoring). Returns
+        the InsertResult, or None when rejected."""
+        fc = self._frame_chunk(msg, first_key=first_key)
+        if fc is None:
+            return None
+        return self.buffer.insert(fc.stream, fc.frame_base, fc.frames, fc.batch, fc.refs, fc.priorities)
 
     def _combine(self, ok: list[tuple[bytes, P.TransitionBatch, dict[str, np.ndarray], str]]
                  ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:

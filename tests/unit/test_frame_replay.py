@@ -17,7 +17,7 @@ from hypothesis import given, settings, strategies as st
 
 from zenrl.common.errors import SpecMismatch
 from zenrl.common.specs import ArraySpec
-from zenrl.replay.frames import FrameReplay
+from zenrl.replay.frames import FrameChunk, FrameReplay, InsertResult
 
 CAM = (2, 3)
 
@@ -169,13 +169,49 @@ class Reference:
 
 
 def run_stream(seed: int, n_actors: int, E: int, n: int, k: int, chunk_steps: int, max_len: int, steps: int,
-               capacity: int, frames_per_item: float, lose: float = 0.0, check_every: int = 1) -> tuple[FrameReplay, Reference]:
+               capacity: int, frames_per_item: float, lose: float = 0.0, check_every: int = 1,
+               max_group: int = 1) -> tuple[FrameReplay, Reference]:
+    """``max_group`` > 1: chunks go in through ``insert_many`` in groups of 1..max_group (as the
+    service's ingest batches them), against the same one-chunk-at-a-time reference."""
     rng = np.random.default_rng(seed)
     counter = Counter()
     actors = [SimActor(f"a{i}", rng, counter, E, n, k, chunk_steps, max_len) for i in range(n_actors)]
     store = make_store(k, capacity, frames_per_item)
     ref = Reference(store.capacity, store.frame_capacity)
     inserted = 0
+    pending: list[dict] = []
+    want = 1
+
+    def flush() -> None:
+        nonlocal inserted, want
+        if max_group == 1:
+            c = pending[0]
+            try:
+                results = [store.insert(c["stream"], c["base"], c["frames"], c["batch"], c["refs"])]
+            except SpecMismatch as e:
+                results = [e]
+        else:
+            results = store.insert_many([FrameChunk(c["stream"], c["base"], c["frames"], c["batch"], c["refs"])
+                                         for c in pending])
+        assert len(results) == len(pending)
+        for c, res in zip(pending, results):
+            if c["frames"]["obs/cam"].shape[0] > store.frame_capacity:
+                assert isinstance(res, SpecMismatch) and "does not fit" in str(res)
+                continue  # refused whole, as if lost
+            assert isinstance(res, InsertResult), res
+            before, first = ref.dropped, len(ref.items)
+            ref.insert(c)
+            inserted += 1
+            assert res.dropped == ref.dropped - before
+            assert res.keys.tolist() == list(range(first, len(ref.items)))  # a key is a reference item index
+            if inserted % check_every == 0 and max_group == 1:
+                check_equal(store, ref, rng)
+        assert store.unresolved == ref.dropped
+        pending.clear()
+        want = int(rng.integers(1, max_group + 1))
+        if max_group > 1:
+            check_equal(store, ref, rng)
+
     for _ in range(steps):
         for a in rng.permutation(n_actors):  # actors interleave in random order
             actors[a].step()
@@ -184,18 +220,11 @@ def run_stream(seed: int, n_actors: int, E: int, n: int, k: int, chunk_steps: in
                 continue
             if lose and rng.random() < lose:
                 continue  # lost on the way: later chunks' references into it must not resolve
-            if c["frames"]["obs/cam"].shape[0] > store.frame_capacity:
-                with pytest.raises(SpecMismatch, match="does not fit"):
-                    store.insert(c["stream"], c["base"], c["frames"], c["batch"], c["refs"])
-                continue  # refused whole, as if lost
-            res = store.insert(c["stream"], c["base"], c["frames"], c["batch"], c["refs"])
-            before = ref.dropped
-            ref.insert(c)
-            inserted += 1
-            assert res.dropped == ref.dropped - before
-            assert store.unresolved == ref.dropped
-            if inserted % check_every == 0:
-                check_equal(store, ref, rng)
+            pending.append(c)
+            if len(pending) >= want:
+                flush()
+    if pending:
+        flush()
     check_equal(store, ref, rng)
     return store, ref
 
@@ -222,6 +251,44 @@ def check_equal(store: FrameReplay, ref: Reference, rng: np.random.Generator) ->
 def test_matches_brute_force(seed, n_actors, E, n, k, chunk_steps, max_len, capacity, fpi, lose):
     run_stream(seed, n_actors, E, n, k, chunk_steps, max_len, steps=40, capacity=capacity,
                frames_per_item=fpi, lose=lose)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31), n_actors=st.integers(1, 3), E=st.integers(1, 3), n=st.integers(1, 4),
+       k=st.sampled_from([0, 1, 4]), chunk_steps=st.integers(1, 5), max_len=st.integers(1, 12),
+       capacity=st.integers(4, 60), fpi=st.sampled_from([0.6, 1.0, 1.5, 3.0]), lose=st.sampled_from([0.0, 0.2]),
+       max_group=st.integers(2, 12))
+def test_insert_many_matches_one_at_a_time(seed, n_actors, E, n, k, chunk_steps, max_len, capacity, fpi, lose, max_group):
+    """Groups of chunks (in tiny rings: later chunks of a group overwrite frames that earlier
+    ones reference) give the keys, drops and stored transitions of one insert per chunk."""
+    run_stream(seed, n_actors, E, n, k, chunk_steps, max_len, steps=40, capacity=capacity,
+               frames_per_item=fpi, lose=lose, max_group=max_group)
+
+
+def test_insert_many_wraps_many_times_and_stays_exact():
+    store, ref = run_stream(4, 3, 2, 3, 4, chunk_steps=1, max_len=9, steps=300, capacity=50,
+                            frames_per_item=1.2, max_group=16)
+    assert store.inserts_total > 10 * store.capacity and store.evicted_by_frames > 0
+
+
+def test_insert_many_refuses_only_the_bad_chunk():
+    store = make_store(0, 100, 2.0)
+    cam = np.zeros((2, *CAM), np.uint8)
+    vec = np.zeros((2, 2), np.float32)
+    one = {"action": np.zeros(1, np.int64), "reward": np.zeros(1, np.float32),
+           "terminated": np.zeros(1, bool), "truncated": np.zeros(1, bool)}
+    refs = {"obs/cam": np.array([0]), "next_obs/cam": np.array([1]), "obs/vec": np.array([0]), "next_obs/vec": np.array([1])}
+    good = FrameChunk("a", 0, {"obs/cam": cam, "obs/vec": vec}, one, refs)
+    bad_dtype = FrameChunk("b", 0, {"obs/cam": cam, "obs/vec": vec}, {**one, "reward": np.zeros(1, np.float64)}, refs)
+    bad_prio = FrameChunk("c", 0, {"obs/cam": cam, "obs/vec": vec}, one, refs, np.array([np.nan]))
+    bad_base = FrameChunk("d", -1, {"obs/cam": cam, "obs/vec": vec}, one, refs)
+    later = FrameChunk("a", 2, {"obs/cam": cam, "obs/vec": vec}, one, {f: v + 2 for f, v in refs.items()})
+    res = store.insert_many([good, bad_dtype, bad_prio, bad_base, later])
+    assert isinstance(res[1], SpecMismatch) and "reward" in str(res[1])
+    assert isinstance(res[2], ValueError) and "finite" in str(res[2])
+    assert isinstance(res[3], ValueError) and "frame_base" in str(res[3])
+    assert res[0].keys.tolist() == [0] and res[4].keys.tolist() == [1]
+    assert store.frames_total == 4 and store.size == 2  # the refused chunks stored no frame
 
 
 def test_ring_wraps_many_times_and_stays_exact():
