@@ -552,6 +552,32 @@ def inprocess_ingest(duration_s: float) -> dict[str, Any]:
     return {"items_per_s": items / el, "items_per_cpu_s": items / cpu, "us_per_chunk_cpu": cpu / i * 1e6}
 
 
+def inprocess_image_ingest(kind: str, duration_s: float) -> dict[str, Any]:
+    """Reference for --images: the service's ingest of ``kind`` frame-mode chunks in this process,
+    no network, in batches of ``replay.ingest_batch_chunks`` as the ingest thread takes them from
+    a busy queue (decode, insert into a warm ring): the replay's own ceiling on one core."""
+    from zenrl.common.config import load_config
+    from zenrl.replay.service import ReplayService
+
+    cfg = load_config(None, [f"replay.capacity={IMAGE_CAPACITY}", "replay.check_semantics=false"])
+    svc = ReplayService(cfg, None, "benchref")
+    per = cfg.replay.ingest_batch_chunks
+    pool = encoded_pool(100, 4 * per, "pub0", kind)
+    for _ in range(2):  # every ring page touched before the clock starts
+        for j in range(0, len(pool), per):
+            svc.ingest_many([(p, "pub0") for p in pool[j:j + per]])
+    # each pass over the pool starts its frame ids again: the replay takes it as the actor
+    # restarting, and every chunk names only its own frames, so every transition is stored
+    items = chunks = 0
+    t0, c0 = time.perf_counter(), time.thread_time()
+    while time.perf_counter() - t0 < duration_s:
+        for j in range(0, len(pool), per):
+            items += svc.ingest_many([(p, "pub0") for p in pool[j:j + per]])
+            chunks += per
+    el, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return {"items_per_s": items / el, "us_per_chunk_cpu": cpu / chunks * 1e6}
+
+
 def checks_overhead(rounds: int, round_s: float) -> dict[str, Any]:
     """CPU time per chunk of the replay's ingest path (decode, validate, insert; batches of
     ``replay.ingest_batch_chunks`` = 32 chunks, as the ingest thread does) with the semantic checks
@@ -717,6 +743,9 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                     f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
                 svc.append(res)
             procs.stop(replay)
+            ref = inprocess_image_ingest(kind, 1.0 if args.quick else 3.0)
+            log(f"[{kind}] reference: the service's ingest in process: {ref['items_per_s']:,.0f} items/s "
+                f"({ref['us_per_chunk_cpu']:.0f} us CPU per chunk)")
             raw_med = statistics.median(x["items_per_s"] for x in raw)
             store_med = statistics.median(x["items_per_s"] for x in store)
             svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
@@ -730,6 +759,10 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 "store_only_ratio_vs_raw_zenoh": round(store_med / raw_med, 3),
                 "store_only_items_per_s": round(store_med),
                 "service_fraction_of_store_only": None if not svc_med else round(svc_med / store_med, 3),
+                # the replay's own ceiling on one core (no network, no other process)
+                "inprocess_items_per_s": round(ref["items_per_s"]),
+                "inprocess_us_per_chunk_cpu": round(ref["us_per_chunk_cpu"], 1),
+                "inprocess_ratio_vs_raw_zenoh": round(ref["items_per_s"] / raw_med, 3),
                 "service_mb_per_s": None if svc_med is None else round(svc_med / IMAGE_CHUNK * chunk_bytes / 1e6, 1),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
                 "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
