@@ -138,3 +138,67 @@ def test_frame_chunks_are_checked_against_the_env_spec():
     assert svc.rejected_by_source["evil"] == 3
     # the honest actor's next chunk still goes in
     assert svc.ingest(_framed_payload(good[1], 1)) == good[1].data["action"].shape[0]
+
+
+def test_frame_chunks_queued_together_store_what_one_at_a_time_stores(tmp_path):
+    """The ingest thread takes every queued chunk at once (``ingest_many``): two actors' frame
+    chunks interleaved, a chunk of another frame shape, one with a NaN priority and one that
+    refers back to a lost chunk in the same batch are each rejected or dropped alone, and the
+    store (keys, samples, what the log restores) is that of one ingest per chunk."""
+    a_pairs, b_pairs = _stream(4, 40, seed=5), _stream(4, 40, seed=6)
+    payloads = []
+    for i in range(min(len(a_pairs), len(b_pairs))):
+        payloads.append((_framed_payload(a_pairs[i][1], i, "a0"), "zenrl/r/transitions/a0"))
+        if i != 3:  # b1's chunk 3 is lost: b1's chunk 4 refers back into it
+            payloads.append((_framed_payload(b_pairs[i][1], i, "b1"), "zenrl/r/transitions/b1"))
+    bf = a_pairs[0][1]
+    wrong_shape = P.TransitionBatch("c2", 0, 0, bf.data, bf.priorities, frames={"obs": bf.frames["obs"][:, :, :2]},
+                                    frame_base=0).encode()
+    nan_prio = P.TransitionBatch("c3", 0, 0, bf.data, np.full_like(bf.priorities, np.nan), frames=bf.frames,
+                                 frame_base=0).encode()
+    payloads[6:6] = [(wrong_shape, "zenrl/r/transitions/c2"), (nan_prio, "zenrl/r/transitions/c3")]
+
+    one = _service()
+    for p, src in payloads:
+        first = one.buffer.inserts_total if one.buffer is not None else 0
+        got = one.ingest(p, src)
+        if src.endswith(("c2", "c3")):
+            assert got == 0
+            continue
+        msg = P.TransitionBatch.decode(p)
+        if got == msg.batch_size:  # stored whole: with the priorities it was sent with
+            keys = np.arange(first, first + got, dtype=np.int64)
+            buf = one.buffer
+            want = (msg.priorities.astype(np.float64) + buf._inner.eps) ** buf._inner.alpha  # the tree's values
+            np.testing.assert_allclose(buf.priorities_of(keys), want, rtol=1e-6)
+    many = _service(tmp_path)
+    inserted = sum(many.ingest_many(payloads[i:i + 16]) for i in range(0, len(payloads), 16))
+
+    assert inserted == one.inserted.total == many.inserted.total
+    assert many.buffer.inserts_total == one.buffer.inserts_total and many.buffer.size == one.buffer.size
+    assert many.buffer.unresolved == one.buffer.unresolved > 0
+    assert dict(many.rejects.counts) == dict(one.rejects.counts)
+    assert many.rejected_by_source["c2"] == 1 and many.rejected_by_source["c3"] == 1
+    keys = np.arange(one.buffer.inserts_total, dtype=np.int64)
+    np.testing.assert_array_equal(many.buffer.priorities_of(keys), one.buffer.priorities_of(keys))
+    s = many.buffer.sample(64, 0.4, np.random.default_rng(2))
+    sampled = {int(k): s.data["obs"][i] for i, k in enumerate(s.keys)}
+    for key, img in sampled.items():  # a stack sampled from the batched store is the one-at-a-time one
+        np.testing.assert_array_equal(img, _obs_of(one, key))
+    many.shutdown()
+    restored = _service(tmp_path)
+    assert restored.buffer.inserts_total == many.buffer.inserts_total and restored.buffer.size == many.buffer.size
+    for key, img in sampled.items():
+        np.testing.assert_array_equal(_obs_of(restored, key), img)
+
+
+def _obs_of(svc, key):
+    """The stored obs stack of transition ``key`` (through the frame keys column)."""
+    from zenrl.replay.frames import GKEY_PREFIX
+
+    inner = svc.buffer._inner
+    slot = key % inner.capacity
+    assert inner._keys[slot] == key, f"key {key} is not stored"
+    g = inner._data[GKEY_PREFIX + "obs"][slot]
+    ring = svc.buffer._frames["obs"]
+    return ring[g % svc.buffer.frame_capacity]
