@@ -247,8 +247,10 @@ class FrameReplay:
 
     def insert_many(self, chunks: Sequence["FrameChunk"]) -> list[InsertResult | SpecMismatch | ValueError]:
         """Store several chunks, in order, with exactly the outcome of one :meth:`insert` per
-        chunk (the same keys, drops and evictions), but one transition insert, one eviction and
-        one reference update for all of them: the per-call cost is paid once per call.
+        chunk (the same keys, drops and stored transitions; only the split of lost items between
+        the ``evicted_by_frames`` counter and capacity eviction may differ), but one transition
+        insert, one eviction and one reference update for all of them: the per-call cost is paid
+        once per call.
 
         Returns, per chunk, its :class:`InsertResult`, or the ``SpecMismatch`` / ``ValueError``
         that refused it (a refused chunk stores nothing; the others are unaffected)."""
