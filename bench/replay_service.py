@@ -141,8 +141,7 @@ def image_batches(kind: str, seed: int, count: int) -> list[tuple[dict[str, np.n
 def ring_mb(kind: str) -> float:
     """MB of frames the replay keeps for IMAGE_CAPACITY transitions of ``kind`` (one new frame
     per transition): the store-only receiver's ring."""
-    b, p, f = image_batches(kind, 0, 1)[0]
-    frame = f["obs"][0].nbytes
+    frame = image_batches(kind, 0, 1)[0][2]["obs"][0].nbytes
     return IMAGE_CAPACITY * frame / 1e6
 
 
@@ -266,8 +265,8 @@ def role_pub(args: argparse.Namespace) -> int:
 def role_rawsub(args: argparse.Namespace) -> int:
     """Count messages on ``transitions/*``; print counts and first/last receipt times after the
     stream has been idle for ``--idle`` s (or on SIGTERM). ``--store-mb`` > 0: also stand in for
-    the replay (its liveliness token, for client-mode publishers) and, from 1 MB, copy each
-    payload into a ring of that size (pre-touched)."""
+    the replay (its liveliness token, for client-mode publishers) and copy each payload into a
+    ring of that size (pre-touched)."""
     from zenrl.common import protocol as P
     from zenrl.common.transport import open_session
 
@@ -277,7 +276,7 @@ def role_rawsub(args: argparse.Namespace) -> int:
     st = {"n": 0, "bytes": 0, "first": None, "last": None, "off": 0}
     lock = threading.Lock()
     store = None
-    if args.store_mb >= 1:
+    if args.store_mb > 0:
         store = np.ones(int(args.store_mb * 1e6), np.uint8)  # touched: no first-touch faults while measured
 
     def cb(sample: Any) -> None:
@@ -307,7 +306,7 @@ def role_rawsub(args: argparse.Namespace) -> int:
         exp_sub = session.declare_subscriber(f"{keys.prefix}/bench/expect",
                                              lambda smp: expect.append(int(smp.payload.to_bytes())))
         token = session.liveliness().declare_token(keys.alive("rawsub", "rawsub"))  # keep a reference
-        token2 = session.liveliness().declare_token(keys.alive("replay", "storesub")) if args.store_mb > 0 else None
+        token2 = session.liveliness().declare_token(keys.alive("replay", "storesub")) if store is not None else None
         deadline = time.monotonic() + args.max_s
         while not stop.wait(0.05):
             with lock:
@@ -457,7 +456,8 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     pubs = [procs.start(f"rawpub{r}-{k}", pub_argv(pub_mode, ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
             for k in range(N_PUBLISHERS)]
     go(node, keys, N_PUBLISHERS)
-    sent = sum(x["sent_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
+    # what is sent after the go signal: a client-mode publisher's warm-up chunk is not counted
+    sent = sum(x["loop_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
     node.put(f"{keys.prefix}/bench/expect", str(sent).encode())
     sres = communicate(procs, f"rawsub{r}", sub, 60)
     node.put(f"{keys.prefix}/bench/release", b"1")

@@ -255,14 +255,14 @@ class FrameReplay:
         Returns, per chunk, its :class:`InsertResult`, or the ``SpecMismatch`` / ``ValueError``
         that refused it (a refused chunk stores nothing; the others are unaffected)."""
         out: list[Any] = [None] * len(chunks)
-        todo: list[tuple[int, FrameChunk, int, int]] = []
+        todo: list[tuple[int, FrameChunk, int, int, np.ndarray | None]] = []
         for i, c in enumerate(chunks):
             try:
                 todo.append((i, c, *self._precheck(c)))
             except (SpecMismatch, ValueError) as e:
                 out[i] = e
         # groups whose frames fit the ring once (a chunk alone always does: check())
-        group: list[tuple[int, FrameChunk, int, int]] = []
+        group: list[tuple[int, FrameChunk, int, int, np.ndarray | None]] = []
         nf = 0
         for t in todo:
             if group and nf + t[2] > self._fcap:
@@ -274,21 +274,21 @@ class FrameReplay:
             self._insert_group(group, out)
         return out
 
-    def _precheck(self, c: "FrameChunk") -> tuple[int, int]:
-        """Everything about one chunk that can refuse it; returns ``(frame count, items)``."""
+    def _precheck(self, c: "FrameChunk") -> tuple[int, int, np.ndarray | None]:
+        """Everything about one chunk that can refuse it; returns ``(frame count, items,
+        float64 priorities or None)``."""
         n_f = self.check(c.frames, c.refs)
         fb = c.frame_base
         if isinstance(fb, bool) or not isinstance(fb, (int, np.integer)) or fb < 0:
             raise ValueError(f"frame_base must be an int >= 0, got {fb!r}")
         n = self._inner._validate_batch({**c.batch, **{GKEY_PREFIX + f: self._gkey_shape(f, c.refs[f]) for f in c.refs}})
-        if c.priorities is not None:
-            _check_priorities(c.priorities, n, "priorities")
+        p = None if c.priorities is None else _check_priorities(c.priorities, n, "priorities")
         for f in c.refs:
             if c.refs[f].shape[0] != n:
                 raise SpecMismatch(f"frame ids {f}: batch size {c.refs[f].shape[0]} differs from {n}")
-        return n_f, n
+        return n_f, n, p
 
-    def _insert_group(self, group: list[tuple[int, "FrameChunk", int, int]], out: list[Any]) -> None:
+    def _insert_group(self, group: list[tuple[int, "FrameChunk", int, int, np.ndarray | None]], out: list[Any]) -> None:
         """Chunks that passed :meth:`_precheck`, whose frames together fit the ring once."""
         # Older transitions that reference a frame any of these chunks overwrite go first
         # (one chunk at a time would evict them chunk by chunk: the same items).
@@ -298,7 +298,7 @@ class FrameReplay:
         prios: list[np.ndarray] = []
         given = False
         counts: list[tuple[int, int, int]] = []  # (chunk index, stored, dropped)
-        for i, c, n_f, n in group:
+        for i, c, n_f, n, p in group:
             fb = int(c.frame_base)
             hist = self._streams.get(c.stream)
             if hist is None or fb < hist.end:  # new actor, or one that restarted
@@ -323,11 +323,9 @@ class FrameReplay:
             data = dict(c.batch)
             for f, g in gk.items():
                 data[GKEY_PREFIX + f] = g if g.ndim == 2 else g[:, None]
-            p = c.priorities
             if p is None:
                 p = np.full(n, mp, np.float64)  # what insert() alone would give: the running max
             else:
-                p = np.asarray(p, np.float64).reshape(-1)
                 given = True
                 if n:
                     mp = max(mp, float(p.max()))
