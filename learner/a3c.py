@@ -42,6 +42,7 @@ from zenrl.common.config import A3CConfig, LearnerConfig, RunConfig
 from zenrl.common.errors import ProtocolError
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
+from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.checkpoint import load_latest, save_checkpoint
 from zenrl.learner.base import LearnerBase, check_resume_compatible
@@ -262,7 +263,7 @@ class A3CLearnerService(LearnerBase):
     def updates(self) -> int:
         return self.applier.updates
 
-    def start(self, node: Node) -> None:
+    def start(self, node: Node, sup: Supervisor | None = None) -> None:
         self._sender = BackgroundSender()
         self._w_pub = node.publisher(self.keys.weights, low_priority=True)
         node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)

@@ -23,6 +23,7 @@ from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import RateMeter
 from zenrl.common.networks import arch_fingerprint, params_to_arrays
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
+from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.base import LearnerBase, check_resume_compatible
 from zenrl.learner.checkpoint import load_latest, save_checkpoint
@@ -113,7 +114,7 @@ class ApexLearnerService(LearnerBase):
                          params=params_to_arrays(self.dqn.online)).encode(self.cfg.transport.max_message_bytes)
 
     # -- the role loop's Worker ---------------------------------------------------------------
-    def start(self, node: Node) -> None:
+    def start(self, node: Node, sup: Supervisor | None = None) -> None:
         cfg = self.cfg.learner
         self._sender = BackgroundSender(linger_s=cfg.send_linger_s, max_message_bytes=self.cfg.transport.max_message_bytes)
         self._w_pub = node.publisher(self.keys.weights, low_priority=True)

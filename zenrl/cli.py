@@ -70,6 +70,7 @@ def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConf
 
 
 def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
+    from zenrl.common.roles import RoleFailed
     from zenrl.common.transport import install_stop_signals
 
     setup_logging(args.log_level, role)
@@ -87,6 +88,10 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
         log.error("%s", e)
         sys.stderr.write(f"zenrl: error: {e}\n")
         return EXIT_CONFIG
+    except RoleFailed as e:  # the loop cannot go on: exit non-zero so the launcher or engine restarts it
+        log.error("%s", e)
+        sys.stderr.write(f"zenrl: error: {role} cannot go on: {e}\n")
+        return 1
     return 0
 
 

@@ -1,11 +1,12 @@
 """The role loop (common/roles.py) with an in-memory node: cadence, budget, stats, shutdown."""
 
 import threading
+import time
 
 import pytest
 
 from zenrl.common import protocol as P
-from zenrl.common.roles import Cadence, RoleLoop
+from zenrl.common.roles import Cadence, RoleFailed, RoleLoop, Supervisor
 
 
 class FakePublisher:
@@ -47,7 +48,7 @@ class CountingWorker:
         self.calls: list[str] = []
         self.idle_after_done = idle_after_done
 
-    def start(self, node):
+    def start(self, node, sup=None):
         self.calls.append("start")
 
     def step(self, timeout_s):
@@ -88,7 +89,7 @@ def test_loop_reports_every_interval_idles_on_budget_and_saves_once_on_stop():
     assert node.tokens == [P.Keys("r1").alive("learner", "w1")]
     stats = [P.Stats.decode(p) for k, p in node.sent if k == P.Keys("r1").stats("learner", "w1")]
     assert len(stats) == loop.reports and loop.reports >= 5
-    assert stats[-1].values == {"steps": 5, "note": "text"} and stats[-1].role == "learner"
+    assert stats[-1].values == {"steps": 5, "note": "text", "errors_total": 0, "stalled": ""} and stats[-1].role == "learner"
     assert metrics.rows[-1][:2] == ("learner", 5) and metrics.closed
     # no checkpoint timer: saved exactly once, on stop, before close
     assert w.calls == ["start", "save", "close"]
@@ -102,10 +103,83 @@ def test_loop_saves_on_its_cadence():
     assert w.calls[-2:] == ["save", "close"]
 
 
-def test_a_failing_step_still_saves_and_closes():
+def test_a_failing_step_is_counted_by_type_and_the_loop_goes_on():
     stop = threading.Event()
+    node = FakeNode()
     w = CountingWorker(stop, budget=10, fail_at=2)
     metrics = FakeMetrics()
-    with pytest.raises(RuntimeError, match="boom"):
-        RoleLoop(FakeNode(), P.Keys("r1"), "actor", w.id, Cadence(log_interval_s=1e9, idle_s=0.01), metrics).run(w, stop)
+    loop = RoleLoop(node, P.Keys("r1"), "actor", w.id, Cadence(log_interval_s=0.0, idle_s=0.01), metrics)
+    loop.run(w, stop)
+    assert w.steps == 10, "the steps after the failing one must still run"
+    stats = [P.Stats.decode(p) for k, p in node.sent if k == P.Keys("r1").stats("actor", "w1")]
+    assert stats[-1].values["errors_total"] == 1 and stats[-1].values["errors/RuntimeError"] == 1
+    assert stats[-1].values["stalled"] == ""
     assert w.calls == ["start", "save", "close"] and metrics.closed
+
+
+class AlwaysFailing(CountingWorker):
+    def step(self, timeout_s):
+        self.steps += 1
+        raise KeyError("always")
+
+
+def test_a_loop_whose_every_step_fails_gives_up_with_role_failed_after_saving():
+    stop = threading.Event()
+    w = AlwaysFailing(stop, budget=10**9)
+    sup = Supervisor(log_every_s=60.0, give_up_s=0.05)
+    with pytest.raises(RoleFailed, match="step has failed every time"):
+        RoleLoop(FakeNode(), P.Keys("r1"), "actor", w.id, Cadence(log_interval_s=1e9, idle_s=0.001), supervisor=sup).run(w, stop)
+    assert w.steps >= 2 and sup.errors["KeyError"] == w.steps
+    assert w.calls == ["start", "save", "close"]
+
+
+def test_tracebacks_are_rate_limited_per_type(caplog):
+    sup = Supervisor(log_every_s=1e9)
+    for _ in range(50):
+        sup.call("unit", lambda: 1 / 0)
+    sup.call("unit", lambda: [][1])
+    logged = [r for r in caplog.records if "failed" in r.getMessage()]
+    assert len(logged) == 2, "one traceback per exception type, the rest counted"
+    assert sup.errors == {"ZeroDivisionError": 50, "IndexError": 1}
+
+
+def test_watched_thread_survives_bad_units_reports_a_stall_and_a_death():
+    sup = Supervisor(log_every_s=1e9, stall_s=0.05)
+    stop = threading.Event()
+    seen, waiting = [], [0]
+    gate = threading.Event()
+
+    def unit():
+        n = len(seen)
+        seen.append(n)
+        if n % 2 == 0:
+            raise ValueError(f"bad {n}")
+        if n >= 7:
+            gate.wait()  # stuck in one unit of work
+    t = sup.thread("ingest", unit, stop, pending=lambda: waiting[0])
+    deadline = time.monotonic() + 10
+    while len(seen) < 8 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert len(seen) == 8 and sup.errors["ValueError"] == 4, "a failing unit must not end the thread"
+    time.sleep(0.1)
+    assert sup.values()["stalled"] == "", "nothing waits: not stalled"
+    waiting[0] = 3
+    assert sup.values()["stalled"] == "ingest", "input waits and no unit finished for stall_s"
+    sup.check()  # stalled but alive: the role goes on (health reports it)
+    gate.set()
+    stop.set()
+    t.join(5)
+    sup.check()  # stopped on purpose: not a failure
+
+
+def test_a_thread_that_dies_fails_the_role():
+    sup = Supervisor()
+    stop = threading.Event()
+
+    def unit():
+        raise SystemExit("gone")  # not an Exception: the thread ends
+    t = sup.thread("sender", unit, stop)
+    t.join(5)
+    with pytest.raises(RoleFailed, match="sender"):
+        sup.check()
+    assert sup.values()["stalled"] == "sender"
