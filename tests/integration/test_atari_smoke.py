@@ -15,8 +15,7 @@ if importlib.util.find_spec("ale_py") is None or importlib.util.find_spec("cv2")
     pytest.skip("ale-py / opencv not installed (pip install 'zenrl[atari]')", allow_module_level=True)
 
 
-def test_pong_apex_runs_a_few_hundred_updates(tmp_path):
-    run_id = "e2e-pong"
+def test_pong_apex_runs_a_few_hundred_updates(tmp_path, run_id):
     p, run_dir, logs = run_zenrl(tmp_path, "configs/pong_apex.yaml", run_id, "max_updates=300", "max_wall_s=400",
                                  "target_return=null", "replay.min_size=600", "replay.capacity=5000",
                                  "learner.batch_size=32", "learner.target_update_period=100",
@@ -26,5 +25,7 @@ def test_pong_apex_runs_a_few_hundred_updates(tmp_path):
     assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]
     assert summary["learner"]["updates"] >= 300
     assert summary["replay"]["rejected_total"] == 0, summary["replay"]
-    assert "frame mode" in (run_dir / "logs" / "replay.log").read_text()  # frames stored once
+    # frames stored once: the replay keeps a frame store (its stats say so), not full observations
+    assert summary["replay"]["frames_stored"] > 0, summary["replay"]
+    assert summary["replay"]["frames_stored"] < summary["replay"]["inserted_total"] * 4, summary["replay"]
     assert not zenrl_pids(run_id), zenrl_pids(run_id)
