@@ -213,3 +213,36 @@ def test_prepare_script_names_the_router_service(tree):
     san = out.stdout
     for name in ("DNS:zenrl-router", "DNS:zenrl-router.zenrl.svc", "DNS:zenrl-router.zenrl.svc.cluster.local"):
         assert name in san, (name, san, shlex.join(out.args))
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_pods_are_hardened_and_only_zenrl_pods_reach_the_router(tree, overlay):
+    docs = render(tree, overlay)
+    bad = []
+    for name, w in workloads(docs).items():
+        tpl = w["spec"]["template"]
+        spec = tpl["spec"]
+        if tpl["metadata"]["labels"].get("app.kubernetes.io/part-of") != "zenrl":
+            bad.append(f"{name}: pods lack the part-of=zenrl label the router's NetworkPolicy admits")
+        if spec.get("automountServiceAccountToken") is not False:
+            bad.append(f"{name}: a service-account token is mounted")
+        if spec.get("securityContext", {}).get("seccompProfile", {}).get("type") != "RuntimeDefault":
+            bad.append(f"{name}: no RuntimeDefault seccomp profile")
+        if not spec.get("securityContext", {}).get("runAsNonRoot"):
+            bad.append(f"{name}: may run as root")
+        for c in spec["containers"]:
+            sc = c.get("securityContext", {})
+            if sc.get("allowPrivilegeEscalation") is not False:
+                bad.append(f"{name}/{c['name']}: privilege escalation allowed")
+            if sc.get("capabilities", {}).get("drop") != ["ALL"]:
+                bad.append(f"{name}/{c['name']}: capabilities not dropped")
+            if sc.get("readOnlyRootFilesystem") is not True:
+                bad.append(f"{name}/{c['name']}: writable root file system")
+            if "/tmp" not in {m["mountPath"] for m in c.get("volumeMounts", [])}:
+                bad.append(f"{name}/{c['name']}: no writable /tmp beside its read-only root")
+    assert not bad, "\n".join(bad)
+    pols = by_kind(docs, "NetworkPolicy")
+    router = pols["zenrl-router-ingress"]["spec"]
+    assert router["podSelector"]["matchLabels"] == {"app.kubernetes.io/name": "zenrl-router"}
+    assert router["policyTypes"] == ["Ingress"]
+    assert [r["from"] for r in router["ingress"]] == [[{"podSelector": {"matchLabels": {"app.kubernetes.io/part-of": "zenrl"}}}]]
