@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from zenrl.common.errors import ZenrlError
+from zenrl.games.burgerwar.judge import match_outcome
 from zenrl.games.burgerwar.opponents import OPPONENT_NAMES
 from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_player, load_policy_env, quiet_native_imports,
                                  resolve_checkpoint)
@@ -102,7 +103,9 @@ class EpisodeRunner:
             done = term or trunc
         res = EpisodeResult(job.index, job.seed, job.opponent, job.side, ret, n)
         if job.opponent is not None:
-            res.outcome, res.my_score, res.enemy_score = info.get("outcome"), info.get("my_score"), info.get("enemy_score")
+            # the env's own result (info["outcome"]); a match cut off by an outer TimeLimit has none and is judged here
+            res.outcome, res.my_score, res.enemy_score = ((info["outcome"], info["my_score"], info["enemy_score"]) if "outcome" in info
+                                                          else match_outcome(info))
         return res
 
     def close(self) -> None:
