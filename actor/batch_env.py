@@ -9,9 +9,10 @@ import numpy as np
 
 from zenrl.common.config import EnvConfig
 from zenrl.common.env_factory import make_env
-from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.networks import flat_obs
 
+#: ``info["outcome"]`` of an episode's last step (a match env's result from the agent's side, e.g.
+#: ``zenrl.games.burgerwar``) -> the sign reported in :attr:`StepResult.ep_outcomes`
 _OUTCOME_SIGN = {"win": 1, "draw": 0, "loss": -1}
 
 
@@ -27,7 +28,9 @@ class StepResult:
     """One batched step. ``obs``: the observation to act on next (reset obs for envs that just
     ended); ``next_obs``: the observation that followed the action (the *final* one for envs that
     ended). rewards float32[E], terminated/truncated bool[E]; finished episodes' returns and
-    lengths, and for match envs their outcomes (+1 win, 0 draw, -1 loss; None for other envs)."""
+    lengths, and their outcomes: +1 win, 0 draw, -1 loss from the last step's ``info["outcome"]``
+    ("win" | "draw" | "loss", what a match env reports), None when the info has no outcome (any
+    other env)."""
 
     obs: dict[str, np.ndarray]
     next_obs: dict[str, np.ndarray]
@@ -74,8 +77,8 @@ class EnvBatch:
             if te or tr:
                 rets.append(float(self._ret[i]))
                 lens.append(int(self._len[i]))
-                m = match_outcome(info)
-                outs.append(None if m is None else _OUTCOME_SIGN[m[0]])
+                m = info.get("outcome")
+                outs.append(None if m is None else _OUTCOME_SIGN[m])
                 self._ret[i] = 0
                 self._len[i] = 0
                 o, _ = env.reset()

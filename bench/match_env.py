@@ -58,7 +58,7 @@ def main() -> None:
         cpu = args.cpu if args.cpu is not None else min(os.sched_getaffinity(0))
         os.sched_setaffinity(0, {cpu})
 
-    from zenrl.common.envs.burgerwar import BurgerWarEnv
+    from zenrl.games.burgerwar.env import BurgerWarEnv
 
     env = BurgerWarEnv(opponents=args.opponent)
     vec = _rate(env, args.steps, args.repeats, 0)

@@ -7,9 +7,12 @@ Importing this package registers:
 * ``zenrl/Atari-v0``: an Atari game (``game="Pong"``) with the DQN preprocessing and a 4-frame
   stack (:func:`zenrl.common.envs.atari.make_atari`; needs the ``atari`` extra).
 
-Use ``gymnasium.make(id, **options)``; options are documented in
-:class:`zenrl.common.envs.burgerwar.BurgerWarEnv` and docs/burgerwar.md. The env ends the match
-itself (``terminated``), so no TimeLimit wrapper is added.
+Use ``gymnasium.make(id, **options)``. The Burger War game lives in its own package,
+:mod:`zenrl.games.burgerwar` (options: :class:`zenrl.games.burgerwar.env.BurgerWarEnv` and
+docs/burgerwar.md); it is registered here by entry-point string only, so importing
+``zenrl.common`` never loads the game (gymnasium imports it on the first ``make``). The env ends
+the match itself (``terminated``), so no TimeLimit wrapper is added; the last step's ``info``
+carries the match's ``outcome`` ("win" | "draw" | "loss"), ``my_score`` and ``enemy_score``.
 """
 
 import gymnasium
@@ -21,19 +24,9 @@ _ENVS = {
 
 for _id, _kwargs in _ENVS.items():
     if _id not in gymnasium.registry:
-        gymnasium.register(id=_id, entry_point="zenrl.common.envs.burgerwar:BurgerWarEnv",
+        gymnasium.register(id=_id, entry_point="zenrl.games.burgerwar.env:BurgerWarEnv",
                            kwargs=_kwargs, max_episode_steps=None, disable_env_checker=False)
 
 if "zenrl/Atari-v0" not in gymnasium.registry:
     gymnasium.register(id="zenrl/Atari-v0", entry_point="zenrl.common.envs.atari:make_atari",
                        max_episode_steps=None, disable_env_checker=True)
-
-__all__ = ["BurgerWarEnv"]
-
-
-def __getattr__(name):
-    if name == "BurgerWarEnv":
-        from zenrl.common.envs.burgerwar import BurgerWarEnv
-
-        return BurgerWarEnv
-    raise AttributeError(name)

@@ -247,7 +247,7 @@ def test_dockerfile_installs_every_package():
     # tree, which would shadow the installed package from its working directory
     zenrl_stage = text[text.index("AS zenrl"):]
     assert "COPY --from=wheel" in zenrl_stage and "pip install --no-deps /tmp/wheels/" in zenrl_stage
-    assert not re.search(r"^COPY (zenrl|common|actor|learner|replay)/", zenrl_stage, re.M)
+    assert not re.search(r"^COPY (zenrl|common|actor|learner|replay|games)/", zenrl_stage, re.M)
     # dependencies are installed before zenrl itself (build cache)
     assert zenrl_stage.index("pip install -r") < zenrl_stage.index("COPY --from=wheel")
 

@@ -6,7 +6,7 @@ import pytest
 @pytest.fixture
 def make_bw():
     """``make_bw(**kwargs)`` -> a BurgerWarEnv, closed when the test ends."""
-    from zenrl.common.envs.burgerwar import BurgerWarEnv
+    from zenrl.games.burgerwar.env import BurgerWarEnv
 
     envs = []
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from zenrl.common.envs import bw_geometry as geo
-from zenrl.common.envs.burgerwar import BURGER_ACCEL, BurgerWarEnv
+from zenrl.games.burgerwar import geometry as geo
+from zenrl.games.burgerwar.env import BURGER_ACCEL, BurgerWarEnv
 
 NAMES = geo.TARGET_NAMES
 

@@ -8,8 +8,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import zenrl.common.envs  # noqa: F401  (registers the ids)
-from zenrl.common.envs import bw_geometry as geo
-from zenrl.common.envs.burgerwar import BurgerWarEnv
+from zenrl.games.burgerwar import geometry as geo
+from zenrl.games.burgerwar.env import BurgerWarEnv
 
 
 @pytest.fixture
@@ -210,7 +210,7 @@ def test_render_shows_robots(make):
 
 
 def test_render_text_font():
-    from zenrl.common.envs.bw_render import FONT, draw_text
+    from zenrl.games.burgerwar.render import FONT, draw_text
 
     img = np.zeros((10, 40, 3), np.uint8)
     draw_text(img, "R 10", 1, 1)

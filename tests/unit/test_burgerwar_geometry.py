@@ -6,8 +6,8 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from zenrl.common.envs import bw_geometry as geo
-from zenrl.common.envs.burgerwar import BurgerWarEnv
+from zenrl.games.burgerwar import geometry as geo
+from zenrl.games.burgerwar.env import BurgerWarEnv
 
 NAMES = [m[0] for m in geo.FIELD_MARKERS]
 COS60 = math.cos(math.radians(60))

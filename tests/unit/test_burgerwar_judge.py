@@ -7,8 +7,8 @@ Each rule's source: the contest kit's judge server (``judge/judgeServer.py``: ``
 
 import pytest
 
-from zenrl.common.envs.bw_geometry import TARGET_NAMES
-from zenrl.common.envs.bw_judge import BLUE, NEUTRAL, RED, Judge
+from zenrl.games.burgerwar.geometry import TARGET_NAMES
+from zenrl.games.burgerwar.judge import BLUE, NEUTRAL, RED, Judge
 
 IDX = {n: i for i, n in enumerate(TARGET_NAMES)}
 FIELD = [n for n in TARGET_NAMES if not n.startswith(("RE_", "BL_"))]
@@ -172,7 +172,7 @@ def test_draw_at_240():
 def test_finished_match_reports_stop_never_end():
     """Source: judgeServer.py: WarState starts in "end" (before the match), setStateStop sets
     "stop" for every finish (time, called game); the contest's clients wait for "stop"."""
-    from zenrl.common.envs.bw_judge import PRE_MATCH, STOP
+    from zenrl.games.burgerwar.judge import PRE_MATCH, STOP
 
     assert (PRE_MATCH, STOP) == ("end", "stop")
     seen = set()
@@ -208,7 +208,7 @@ def _info(side, r, b, winner=None):
 
 
 def test_match_outcome_counts_like_the_contest():
-    from zenrl.common.envs.bw_judge import match_outcome
+    from zenrl.games.burgerwar.judge import match_outcome
 
     assert match_outcome(_info("red", 3, 1, "r")) == ("win", 3, 1)
     assert match_outcome(_info("blue", 3, 1, "r")) == ("loss", 1, 3)
@@ -224,7 +224,7 @@ def test_env_sudden_death_ends_with_stop_when_the_agent_scores():
     makes the scores differ -> terminated, state "stop", with sudden-death time left."""
     import math
 
-    from zenrl.common.envs.burgerwar import BurgerWarEnv
+    from zenrl.games.burgerwar.env import BurgerWarEnv
 
     env = BurgerWarEnv(opponents="idle", lidar_noise=0.0, match_time=0.5, sudden_death_time=5.0)
     try:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from zenrl.common.envs import bw_opponents as bo
-from zenrl.common.envs.burgerwar import BurgerWarEnv
+from zenrl.games.burgerwar import opponents as bo
+from zenrl.games.burgerwar.env import BurgerWarEnv
 
 STOP = 2  # the users' (0, 0) action
 

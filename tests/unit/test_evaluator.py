@@ -9,9 +9,9 @@ from zenrl.actor.evaluator import build_policy_net, play_episodes
 from zenrl.common.networks import NumpyQ
 from zenrl.common.config import RunConfig
 from zenrl.common.env_factory import make_env
-from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.networks import flat_obs
 from zenrl.common.policy_io import greedy_actions
+from zenrl.games.burgerwar.judge import match_outcome
 
 
 def _cfg(env: dict) -> RunConfig:

@@ -13,9 +13,9 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from zenrl.common.envs.bw_judge import match_outcome
 from zenrl.common.errors import ZenrlError
-from zenrl.common.envs.bw_opponents import OPPONENT_NAMES
+from zenrl.games.burgerwar.judge import match_outcome
+from zenrl.games.burgerwar.opponents import OPPONENT_NAMES
 from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_player, load_policy_env, quiet_native_imports,
                                  resolve_checkpoint)
 from zenrl.tools.stats import mean_ci, wilson
@@ -103,7 +103,9 @@ class EpisodeRunner:
             done = term or trunc
         res = EpisodeResult(job.index, job.seed, job.opponent, job.side, ret, n)
         if job.opponent is not None:
-            res.outcome, res.my_score, res.enemy_score = match_outcome(info)
+            # the env's own result (info["outcome"]); a match cut off by an outer TimeLimit has none and is judged here
+            res.outcome, res.my_score, res.enemy_score = ((info["outcome"], info["my_score"], info["enemy_score"]) if "outcome" in info
+                                                          else match_outcome(info))
         return res
 
     def close(self) -> None:

@@ -54,7 +54,7 @@ def env_config_for(cfg: RunConfig, env_id: str | None = None, env_kwargs: Mappin
 
 
 def is_match_env(env: gym.Env) -> bool:
-    from zenrl.common.envs.burgerwar import BurgerWarEnv
+    from zenrl.games.burgerwar.env import BurgerWarEnv
 
     return isinstance(env.unwrapped, BurgerWarEnv)
 

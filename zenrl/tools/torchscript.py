@@ -74,7 +74,7 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
                 "call": ("policy({key: tensor}) " if dict_obs else "policy(tensor) ") +
                         "-> int64 scalar tensor (one observation, no batch dim)"}
         if is_match_env(env):
-            from zenrl.common.envs.burgerwar import RICH_ACTIONS, USERS_ACTIONS
+            from zenrl.games.burgerwar.env import RICH_ACTIONS, USERS_ACTIONS
 
             table = {"users": USERS_ACTIONS, "rich": RICH_ACTIONS}.get(env.unwrapped.action_set)
             meta["actions_v_w"] = np.asarray(table).tolist() if table is not None else None

@@ -25,7 +25,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from zenrl.common.envs.bw_geometry import N_FIELD, TARGET_NAMES, TARGET_POINTS
+from zenrl.games.burgerwar.geometry import N_FIELD, TARGET_NAMES, TARGET_POINTS
 
 NEUTRAL, RED, BLUE = 0, 1, 2
 _PLAYER_CHAR = {NEUTRAL: "n", RED: "r", BLUE: "b"}

@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from zenrl.common.envs import bw_geometry as geo
+from zenrl.games.burgerwar import geometry as geo
 
 
 @dataclass

@@ -21,10 +21,10 @@ import numpy as np
 import pybullet as p
 from gymnasium import spaces
 
-from zenrl.common.envs import bw_geometry as geo
-from zenrl.common.envs.bw_judge import BLUE, NEUTRAL, RED, Judge, match_outcome  # noqa: F401 (re-export)
-from zenrl.common.envs.bw_opponents import OPPONENT_NAMES, OpponentView, make_opponent
-from zenrl.common.envs.bw_render import TopDownRenderer
+from zenrl.games.burgerwar import geometry as geo
+from zenrl.games.burgerwar.judge import BLUE, NEUTRAL, RED, Judge, match_outcome
+from zenrl.games.burgerwar.opponents import OPPONENT_NAMES, OpponentView, make_opponent
+from zenrl.games.burgerwar.render import TopDownRenderer
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +137,12 @@ class BurgerWarEnv(gym.Env):
     ``enemy_pose`` and ``image``.
 
     info: ``war_state`` (the judge's JSON shape), ``captures`` (events this step),
-    ``winner`` ("r"/"b"/"draw"/None), ``reward_components``, ``side``, ``opponent``.
+    ``winner`` ("r"/"b"/"draw"/None), ``reward_components``, ``side``, ``opponent``; on the step
+    that ends the match (``terminated``, or ``truncated`` by ``max_steps``) also ``outcome``
+    ("win" | "draw" | "loss" from the agent's side, :func:`~zenrl.games.burgerwar.judge.match_outcome`),
+    ``my_score`` and ``enemy_score`` (ints). Generic code (``EnvBatch``, the evaluator) learns a
+    match's result from these keys alone; a match cut off by an outer TimeLimit wrapper has
+    not finished and has none.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -619,7 +624,10 @@ class BurgerWarEnv(gym.Env):
         comps = self._reward(before, scores_before, terminated)
         reward = float(sum(comps.values()))
         obs = self._obs(a, self._agent_lidar)
-        return obs, reward, terminated, truncated, self._info(captures, comps)
+        info = self._info(captures, comps)
+        if terminated or truncated:
+            info["outcome"], info["my_score"], info["enemy_score"] = match_outcome(info)
+        return obs, reward, terminated, truncated, info
 
     def _ramp(self, k: int, dt: float) -> tuple[float, float]:
         """Robot k's speeds for the next physics step: towards the command, changing by at most

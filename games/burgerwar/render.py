@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from zenrl.common.envs import bw_geometry as geo
+from zenrl.games.burgerwar import geometry as geo
 
 # 3x5 bitmap glyphs ('#' = ink), rows top to bottom.
 _GLYPHS = {
