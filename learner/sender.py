@@ -1,17 +1,17 @@
 """The learner's outgoing traffic off the training thread: priorities merged per wake-up and
-weights broadcasts, put from a thread of its own."""
+weights broadcasts, put from a thread of its own that the role's supervisor watches."""
 
 from __future__ import annotations
 
 import collections
 import logging
 import threading
-import time
 from typing import Any
 
 import numpy as np
 
 from zenrl.common import protocol as P
+from zenrl.common.roles import Supervisor
 
 log = logging.getLogger(__name__)
 
@@ -25,21 +25,33 @@ class BackgroundSender:
     ``linger_s`` > 0 the thread waits that long after the first item before it sends, so it
     wakes once per few training steps instead of once per step (each wake-up of another thread
     costs the training thread a GIL hand-off). Over ``max_items`` queued, items are dropped and
-    counted in ``dropped``; a failed put or encoding is logged and counted in ``failed``.
+    counted in ``dropped``; a failed put or encoding is counted in ``failed``, the other items of
+    that wake-up are still sent.
+
+    The thread is a watched one (:meth:`~zenrl.common.roles.Supervisor.thread` of ``sup``, the
+    role's supervisor; a private one if None): a wake-up with a failed put raises its first
+    error after sending the rest, so the supervisor counts it by type (``errors/<Type>``), logs
+    it rate-limited and runs the next wake-up; a sender whose every wake-up fails for the
+    supervisor's ``give_up_s``, or whose thread dies, fails the role
+    (:class:`~zenrl.common.roles.RoleFailed` from ``sup.check()``).
     """
 
-    def __init__(self, max_items: int = 256, linger_s: float = 0.0, max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+    #: how long one unit of the thread waits for the first item (its heartbeat when idle)
+    IDLE_WAIT_S = 0.5
+
+    def __init__(self, max_items: int = 256, linger_s: float = 0.0, max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES,
+                 sup: Supervisor | None = None) -> None:
         self.max_items = max_items
         self.linger_s = linger_s
         self.max_bytes = max_message_bytes
         self._items: collections.deque[tuple[Any, Any]] = collections.deque()
         self._wake = threading.Event()
-        self._closed = False
+        self._stop = threading.Event()
         self.dropped = 0
         self.failed = 0
         self.sent = 0
-        self._t = threading.Thread(target=self._loop, name="sender", daemon=True)
-        self._t.start()
+        self.sup = sup if sup is not None else Supervisor()
+        self._t = self.sup.thread("sender", self._unit, self._stop, pending=lambda: len(self._items), drain=self._drain)
 
     def _queue(self, publisher: Any, item: Any) -> None:
         if len(self._items) >= self.max_items:
@@ -56,18 +68,20 @@ class BackgroundSender:
         """keys int64[B], priorities float32[B] (held by reference: do not modify them)."""
         self._queue(publisher, (keys, priorities))
 
-    def _loop(self) -> None:
-        while True:
-            self._wake.wait()
-            if not self._closed and self.linger_s > 0:
-                time.sleep(self.linger_s)
-            self._wake.clear()
-            items = []
-            while self._items:
-                items.append(self._items.popleft())
-            self._flush(items)
-            if self._closed and not self._items:
-                return
+    def _unit(self) -> None:
+        """One wake-up: wait for the first item, linger, send everything queued."""
+        if not self._wake.wait(self.IDLE_WAIT_S):
+            return
+        if self.linger_s > 0:
+            self._stop.wait(self.linger_s)  # cut short by close(): the drain sends the rest
+        self._wake.clear()
+        self._drain()
+
+    def _drain(self) -> None:
+        items = []
+        while self._items:
+            items.append(self._items.popleft())
+        self._flush(items)
 
     def _flush(self, items: list[tuple[Any, Any]]) -> None:
         # priorities for one publisher become one message, sent where their first part was queued
@@ -83,6 +97,7 @@ class BackgroundSender:
                 out.append((pub, parts))
             parts[0].append(item[0])
             parts[1].append(item[1])
+        first_error: Exception | None = None
         for pub, item in out:
             try:
                 if not isinstance(item, bytes):
@@ -90,12 +105,14 @@ class BackgroundSender:
                                             priorities=np.concatenate(item[1])).encode(self.max_bytes)
                 pub.put(item)
                 self.sent += 1
-            except Exception as e:  # zenoh.ZError if the session closed, an encoding error: keep going
+            except Exception as e:  # zenoh.ZError if the session closed, an encoding error: send the rest
                 self.failed += 1
-                log.warning("background put failed: %s", e)
+                first_error = first_error or e
+        if first_error is not None:
+            raise first_error  # counted and logged by the supervisor; the next wake-up runs
 
     def close(self) -> None:
         """Send what is queued, then stop the thread."""
-        self._closed = True
+        self._stop.set()
         self._wake.set()
         self._t.join(timeout=5)
