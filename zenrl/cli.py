@@ -117,15 +117,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
-    from zenrl.learner.service import main
+    from zenrl.processes import learner_main
 
-    return _run_role(args, "learner", lambda c, r, s: main(c, r, s, resume=args.resume))
+    return _run_role(args, "learner", lambda c, r, s: learner_main(c, r, s, resume=args.resume))
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
-    from zenrl.actor.service import main
+    from zenrl.processes import actor_main
 
-    return _run_role(args, "actor", lambda c, r, s: main(c, r, s, actor_id=args.id, slot=args.slot))
+    return _run_role(args, "actor", lambda c, r, s: actor_main(c, r, s, actor_id=args.id, slot=args.slot))
 
 
 def cmd_evaluator(args: argparse.Namespace) -> int:
