@@ -125,6 +125,9 @@ class ZenohReplayClient:
         return len(self._backlog)
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Publish new priorities (keys int64[B], priorities float32[B]) as one
+        :class:`PriorityUpdate`: the one way priorities reach the replay (the learner calls it
+        from its sender's thread, with the priorities of several batches merged)."""
         if self._prio is None:
             self._prio = self.node.publisher(self.keys.priorities)
         self._prio.put(P.PriorityUpdate(keys=np.asarray(keys, np.int64),

@@ -110,10 +110,8 @@ class ApexLearner(LearnerBase):
         """Publishers, the weights queryable, the first weights; the sender's and the
         prefetcher's threads watched by ``sup``."""
         cfg = self.cfg.learner
-        self._sender = BackgroundSender(linger_s=cfg.send_linger_s, max_message_bytes=self.cfg.transport.max_message_bytes,
-                                        sup=sup)
+        self._sender = BackgroundSender(linger_s=cfg.send_linger_s, sup=sup)
         self._w_pub = node.publisher(self.keys.weights, low_priority=True)
-        self._prio_pub = node.publisher(self.keys.priorities)
         node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
         self._latest_weights = self._encode_weights()
         self._w_pub.put(self._latest_weights)
@@ -137,7 +135,7 @@ class ApexLearner(LearnerBase):
             if self.dqn.guard.rollback_due:
                 self.rollback()
             return False
-        self._sender.send_priorities(self._prio_pub, s.keys, prios)
+        self._sender.send_priorities(self.client.update_priorities, s.keys, prios)
         self.transitions_consumed += len(prios)
         self._upd_rate.add(1)
         self._tr_rate.add(len(prios))

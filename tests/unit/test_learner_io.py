@@ -26,14 +26,27 @@ class FakePublisher:
         self.puts.append(payload)
 
 
+class PublishingNode:
+    """A node whose publishers record what is put on them, by key."""
+
+    def __init__(self) -> None:
+        self.pubs: dict[str, FakePublisher] = {}
+
+    def publisher(self, key: str, **_kw) -> FakePublisher:
+        return self.pubs.setdefault(key, FakePublisher())
+
+
 def test_sender_merges_queued_priorities_in_order_and_keeps_other_payloads():
-    prio, weights = FakePublisher(), FakePublisher()
+    node, weights = PublishingNode(), FakePublisher()
+    client = ZenohReplayClient(node, P.Keys("unit"))
     s = BackgroundSender(linger_s=0.5)  # long enough that all four items gather before a send
-    s.send_priorities(prio, np.array([1, 2, 3]), np.array([0.1, 0.2, 0.3], np.float32))
+    # the replay client's verb is the one way priorities go out
+    s.send_priorities(client.update_priorities, np.array([1, 2, 3]), np.array([0.1, 0.2, 0.3], np.float32))
     s.send(weights, b"w1")
-    s.send_priorities(prio, np.array([2, 7]), np.array([0.9, 0.7], np.float32))
-    s.send_priorities(prio, np.array([8]), np.array([0.8], np.float32))
+    s.send_priorities(client.update_priorities, np.array([2, 7]), np.array([0.9, 0.7], np.float32))
+    s.send_priorities(client.update_priorities, np.array([8]), np.array([0.8], np.float32))
     s.close()
+    prio = node.pubs[P.Keys("unit").priorities]
     assert weights.puts == [b"w1"]
     assert len(prio.puts) == 1
     u = P.PriorityUpdate.decode(prio.puts[0])
@@ -44,11 +57,12 @@ def test_sender_merges_queued_priorities_in_order_and_keeps_other_payloads():
 
 def test_sender_without_linger_sends_each_item_and_counts_failed_puts():
     pub = FakePublisher(fail_first=1)
-    s = BackgroundSender(linger_s=0.0, max_message_bytes=200)
+    client = ZenohReplayClient(PublishingNode(), P.Keys("unit"), max_message_bytes=200)
+    s = BackgroundSender(linger_s=0.0)
     s.send(pub, b"a")
     wait_until(lambda: s.failed == 1, 5, "the first put to fail", 0.005)
     s.send(pub, b"b")
-    s.send_priorities(pub, np.arange(100), np.ones(100, np.float32))  # over the 200-byte cap
+    s.send_priorities(client.update_priorities, np.arange(100), np.ones(100, np.float32))  # over the 200-byte cap
     s.send(pub, b"c")
     s.close()
     assert pub.puts == [b"b", b"c"]
