@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 import tempfile
 import time
@@ -39,8 +38,6 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import ROOT, Procs, emit, log, machine_info, record_error, stop_on_sigterm  # noqa: E402
-
-CKPT = re.compile(r"^ckpt-(\d{12})\.pt$")
 
 
 def free_port() -> int:
@@ -53,21 +50,14 @@ def free_port() -> int:
 
 def newest_checkpoint(ckpt_dir: Path) -> tuple[int, Path, float] | None:
     """(updates, path, mtime) of the newest checkpoint in ``ckpt_dir``, or None."""
-    best = None
-    try:
-        entries = list(os.scandir(ckpt_dir))
-    except FileNotFoundError:
-        return None
-    for e in entries:
-        m = CKPT.match(e.name)
-        if m:
-            try:
-                mtime = e.stat().st_mtime
-            except FileNotFoundError:  # pruned by the learner meanwhile
-                continue
-            if best is None or int(m.group(1)) > best[0]:
-                best = (int(m.group(1)), Path(e.path), mtime)
-    return best
+    from zenrl.common.checkpoints import checkpoint_step, list_checkpoints
+
+    for p in reversed(list_checkpoints(ckpt_dir)):
+        try:
+            return checkpoint_step(p), p, p.stat().st_mtime
+        except FileNotFoundError:  # pruned by the learner meanwhile
+            continue
+    return None
 
 
 def evaluate_checkpoint(path: Path, opponents: list[str], episodes: int, seed: int,

@@ -3,7 +3,7 @@
 Measures, in one run and one process (CartPole-v1 network from ``configs/cartpole_apex.yaml``,
 ``learner.batch_size=512``, one torch thread as configured):
 
-  * ``service``  - updates/s of :class:`ApexLearnerService` doing everything it does in a run:
+  * ``service``  - updates/s of :class:`ApexLearner` doing everything it does in a run:
                    ``SamplePrefetcher`` (4 sample queries in flight) against a ``zenrl replay``
                    process pre-filled with CartPole transitions, ``batch_to_tensors`` +
                    ``DQNLearner.update``, priorities sent back from the background sender,
@@ -167,14 +167,14 @@ def guard_overhead(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: fl
 
 
 def make_service(cfg: Any, node: Any, run: str, name: str) -> Any:
-    from zenrl.learner.service import ApexLearnerService
+    from zenrl.learner.apex import ApexLearner
 
-    return ApexLearnerService(cfg, node, run, resume="never", learner_id=name)
+    return ApexLearner(cfg, node, run, resume="never", learner_id=name)
 
 
 def service_rate(cfg: Any, node: Any, run: str, name: str, warmup_s: float, duration_s: float,
                  lstats: StatsWatch) -> dict[str, Any]:
-    """Updates/s of ApexLearnerService.run in this (the main) thread, read from its update counter
+    """Updates/s of ApexLearner.run in this (the main) thread, read from its update counter
     by a helper thread, which also stops it."""
     svc = make_service(cfg, node, run, name)
     stop = threading.Event()
@@ -217,7 +217,7 @@ BUCKETS = [
     ("batch_to_tensors (0 here: it runs in the reply callback)", "learner/dqn.py", "batch_to_tensors"),
     ("DQNLearner.update", "learner/dqn.py", "update"),
     ("encode (PriorityUpdate: on the sender thread)", "common/protocol.py", "encode"),
-    ("weights encode (_encode_weights)", "learner/service.py", "_encode_weights"),
+    ("weights encode (_encode_weights)", "learner/apex.py", "_encode_weights"),
     ("write_version_mark", "learner/checkpoint.py", "write_version_mark"),
     ("BackgroundSender.send_priorities", "learner/sender.py", "send_priorities"),
     ("stats/metrics (MetricsWriter.write)", "common/metrics.py", "write"),
@@ -246,7 +246,7 @@ def profile_service(cfg: Any, node: Any, run: str, duration_s: float) -> dict[st
     finally:
         prof.disable()
     entries = pstats.Stats(prof).stats
-    run_ct = next((v[3] for k, v in entries.items() if k[0].endswith("learner/service.py") and k[2] == "run"), 1.0)
+    run_ct = next((v[3] for k, v in entries.items() if k[0].endswith("learner/base.py") and k[2] == "run"), 1.0)
     buckets = {}
     for label, suffix, func in BUCKETS:
         ct = sum(v[3] for k, v in entries.items() if k[0].endswith(suffix) and k[2] == func)
@@ -311,7 +311,7 @@ def orchestrate(args: argparse.Namespace) -> int:
             log(f"round {r} baseline (DQNLearner, in-memory batches): {b['updates_per_s']:.1f} updates/s")
             base.append(b)
             s = service_rate(cfg, node, run, f"bench-learner-{r}", warmup_s, dur_s, lstats)
-            log(f"round {r} ApexLearnerService: {s['updates_per_s']:.1f} updates/s, wait fraction {s['wait_fraction']}")
+            log(f"round {r} ApexLearner: {s['updates_per_s']:.1f} updates/s, wait fraction {s['wait_fraction']}")
             svc.append(s)
         guard = guard_overhead(cfg, spec, n_actions, 2 if args.quick else 6, 1.5)
         log(f"learner guard: ratio {guard['guard_overhead_ratio']} (CPU per update, guarded / unguarded)")

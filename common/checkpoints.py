@@ -1,28 +1,183 @@
-"""The checkpoint files of a run, read by the learner (to resume) and by every tool (evaluate,
-play, export, self-play snapshots): one training-state dict per ``ckpt-<updates>.pt``, loaded
-with ``torch.load(..., weights_only=True)`` so that a file from elsewhere cannot run code.
-Writing them is the learner's (:mod:`zenrl.learner.checkpoint`)."""
+"""The learner's checkpoint files: their one schema, and reading them.
+
+A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``) holds one :class:`TrainingState`,
+stored as a plain dict of tensors, numbers and strings (loaded with ``torch.load(...,
+weights_only=True)`` so that a file from elsewhere cannot run code). Its layout::
+
+    {"format": 1, "algo": "apex" | "a3c",            # which schema reads the rest
+     "arch": str, "version": int, "config": dict,    # every algorithm (TrainingState)
+     "torch_rng": uint8 tensor, "saved_at": float,
+     ...the algorithm's own fields}                  # ApexTrainingState, A3CTrainingState
+
+:class:`TrainingState` holds the fields every learner writes; each algorithm extends it with a
+subclass that names its own fields, its policy network class and where in the file the policy's
+state dict lives (:attr:`TrainingState.policy_path`). The learners write it
+(:meth:`~zenrl.learner.base.LearnerBase.training_state`), and everything that reads a checkpoint
+(resume, rollback, ``zenrl evaluate/play/export``, self-play snapshots, tests and benchmarks)
+reads it through :func:`read_checkpoint`; nothing builds the dict by hand. The schemas live in
+``common/`` because the actors' self-play reader (:mod:`zenrl.common.policy_io`) may not import
+``learner/``. Writing files is :mod:`zenrl.learner.checkpoint`.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Mapping
 
 import torch
 
+from zenrl.common.config import NetworkConfig, RunConfig, config_from_dict
 from zenrl.common.errors import CheckpointError
+from zenrl.common.networks import ActorCritic, QNetwork
+from zenrl.common.specs import ArraySpec
 
 log = logging.getLogger(__name__)
 
 _NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
 
+#: the layout version written in ``"format"``; a file of a newer one is refused by name
+FORMAT = 1
+#: the algorithm of a file that names none (written before ``"algo"`` was recorded)
+DEFAULT_ALGO = "apex"
 
+
+# --------------------------------------------------------------------------------------------
+# The schema
+# --------------------------------------------------------------------------------------------
+@dataclasses.dataclass(kw_only=True)
+class TrainingState:
+    """What every learner's checkpoint holds. Subclasses (one per algorithm) add their fields and
+    set the class attributes :attr:`algo`, :attr:`network` and :attr:`policy_path`."""
+
+    #: the ``"algo"`` the file records (``RunConfig.algo``)
+    algo: ClassVar[str] = ""
+    #: the policy network class: what actors act with and tools load the policy into
+    network: ClassVar[type[torch.nn.Module]]
+    #: the keys leading to the policy's state dict in the file (e.g. ``("learner", "online")``)
+    policy_path: ClassVar[tuple[str, ...]] = ()
+
+    #: :func:`~zenrl.common.networks.arch_fingerprint` of the network (resume refuses another)
+    arch: str
+    #: the weights version last published (a resumed learner continues above it)
+    version: int
+    #: the resolved run configuration, ``RunConfig.model_dump(mode="json")``
+    config: dict[str, Any]
+    #: ``torch.get_rng_state()`` when saved (None in files that did not record it)
+    torch_rng: torch.Tensor | None = None
+    #: ``time.time()`` when saved
+    saved_at: float = 0.0
+
+    @property
+    def updates(self) -> int:
+        """Updates applied when saved (the step in the file name)."""
+        raise NotImplementedError
+
+    def run_config(self) -> RunConfig:
+        """The run configuration the state was trained with."""
+        return config_from_dict(self.config)
+
+    def policy_state(self) -> Mapping[str, torch.Tensor]:
+        """The policy network's state dict (at :attr:`policy_path`)."""
+        weights: Any = self.to_dict()
+        for key in self.policy_path:
+            weights = weights.get(key) if isinstance(weights, Mapping) else None
+        if not isinstance(weights, Mapping):
+            raise CheckpointError(f"{self.algo} checkpoint has no {'.'.join(self.policy_path)} state dict")
+        return weights
+
+    @classmethod
+    def policy_network(cls, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig) -> torch.nn.Module:
+        """A new policy network (:attr:`network`) for observations ``spec`` and ``n_actions``."""
+        return cls.network(spec, n_actions, net_cfg)
+
+    # -- the file's dict ----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The dict ``torch.save`` writes: ``format``, ``algo`` and every field by name."""
+        d: dict[str, Any] = {"format": FORMAT, "algo": self.algo}
+        d.update({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        return d
+
+    @staticmethod
+    def from_dict(d: Any, where: str = "checkpoint") -> "TrainingState":
+        """The schema of ``d["algo"]`` filled from ``d``; :class:`CheckpointError` naming what is
+        missing or unknown. Keys the schema does not name are ignored (so an older reader takes a
+        newer file's extra fields)."""
+        if not isinstance(d, Mapping) or "format" not in d or "config" not in d:
+            raise CheckpointError(f"{where} is not a zenrl training state")
+        if not isinstance(d["format"], int) or d["format"] > FORMAT:
+            raise CheckpointError(f"{where} has format {d['format']!r}; this zenrl reads format {FORMAT} and older")
+        schema = training_state_class(d.get("algo", DEFAULT_ALGO), where)
+        names = {f.name: f for f in dataclasses.fields(schema)}
+        missing = [n for n, f in names.items() if n not in d and f.default is dataclasses.MISSING
+                   and f.default_factory is dataclasses.MISSING]
+        if missing:
+            raise CheckpointError(f"{where} ({schema.algo}) lacks {', '.join(missing)}")
+        return schema(**{n: d[n] for n in names if n in d})
+
+
+@dataclasses.dataclass(kw_only=True)
+class ApexTrainingState(TrainingState):
+    """Ape-X DQN: the learner's state (online and target Q networks, optimizer, updates) and the
+    transitions trained on."""
+
+    algo: ClassVar[str] = "apex"
+    network: ClassVar[type[torch.nn.Module]] = QNetwork
+    policy_path: ClassVar[tuple[str, ...]] = ("learner", "online")
+
+    #: ``DQNLearner.state_dict()``: ``online``, ``target``, ``optimizer``, ``updates``
+    learner: dict[str, Any]
+    transitions_consumed: int = 0
+
+    @property
+    def updates(self) -> int:
+        return int(self.learner.get("updates", 0))
+
+
+@dataclasses.dataclass(kw_only=True)
+class A3CTrainingState(TrainingState):
+    """A3C: the shared actor-critic, its optimizer, the gradients applied and the env steps they
+    came from."""
+
+    algo: ClassVar[str] = "a3c"
+    network: ClassVar[type[torch.nn.Module]] = ActorCritic
+    policy_path: ClassVar[tuple[str, ...]] = ("model",)
+
+    model: dict[str, torch.Tensor]
+    optimizer: dict[str, Any]
+    #: gradients applied (a field of its own here, not inside a learner dict)
+    updates: int = 0  # type: ignore[assignment]  # a stored field where the base has a property
+    env_steps_trained: int = 0
+
+
+#: the checkpoint schema of each algorithm, by ``algo`` (the registry of whole algorithms,
+#: :data:`zenrl.algorithms.ALGORITHMS`, names the same classes; a unit test holds them equal)
+TRAINING_STATES: dict[str, type[TrainingState]] = {s.algo: s for s in (ApexTrainingState, A3CTrainingState)}
+
+
+def training_state_class(algo: str, where: str = "checkpoint") -> type[TrainingState]:
+    """The schema of ``algo``; :class:`CheckpointError` for one this zenrl does not know."""
+    try:
+        return TRAINING_STATES[algo]
+    except (KeyError, TypeError):
+        raise CheckpointError(f"{where} is of unknown algorithm {algo!r}; one of {sorted(TRAINING_STATES)}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------
 def checkpoint_name(step: int) -> str:
     """The file name of the checkpoint written at ``step`` updates (sorts by step)."""
     return f"ckpt-{int(step):012d}.pt"
+
+
+def checkpoint_step(path: str | os.PathLike[str]) -> int | None:
+    """The updates a checkpoint file's name records (``ckpt-<updates>.pt``), None for another name."""
+    m = _NAME.match(Path(path).name)
+    return int(m.group(1)) if m else None
 
 
 def list_checkpoints(directory: str | os.PathLike[str]) -> list[Path]:
@@ -33,21 +188,19 @@ def list_checkpoints(directory: str | os.PathLike[str]) -> list[Path]:
     return sorted(p for p in d.iterdir() if _NAME.match(p.name))
 
 
-def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The training-state dict of ``path`` (tensors on the CPU); :class:`CheckpointError` if
-    it is missing, unreadable or not a zenrl training state."""
+def read_checkpoint(path: str | os.PathLike[str]) -> TrainingState:
+    """The training state in ``path`` (tensors on the CPU); :class:`CheckpointError` if it is
+    missing, unreadable or not a zenrl training state."""
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        d = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
     except Exception as e:  # torch raises many types for truncated/corrupt archives
         raise CheckpointError(f"checkpoint {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
-    if not isinstance(state, dict) or "format" not in state or "config" not in state:
-        raise CheckpointError(f"checkpoint {str(path)!r} is not a zenrl training state")
-    return state
+    return TrainingState.from_dict(d, f"checkpoint {str(path)!r}")
 
 
-def load_latest(directory: str | os.PathLike[str]) -> tuple[dict[str, Any], Path]:
+def load_latest(directory: str | os.PathLike[str]) -> tuple[TrainingState, Path]:
     """The newest readable checkpoint in ``directory`` and its path; a corrupt newer file is
     reported and skipped. :class:`CheckpointError` if there is none."""
     files = list_checkpoints(directory)

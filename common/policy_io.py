@@ -1,11 +1,9 @@
 """Trained policies out of checkpoint files, for tools and for self-play opponents.
 
-A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``, written by the learner) is one dict
-loaded with ``torch.load(..., weights_only=True)``; this module only needs its ``"algo"``, the
-resolved ``"config"`` and the network weights:
-
-* Ape-X: ``state["learner"]["online"]`` (a :class:`~zenrl.common.networks.QNetwork` state dict);
-* A3C: ``state["model"]`` (an :class:`~zenrl.common.networks.ActorCritic` state dict).
+A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``, written by the learner) is read as a
+:class:`~zenrl.common.checkpoints.TrainingState`; this module needs its run configuration and
+its policy network (the schema's ``network`` class, loaded with ``policy_state()``: the online
+Q network of Ape-X, the actor-critic of A3C).
 
 It lives in ``common/`` so that actors (which may not import ``learner/``) can load frozen
 snapshots as opponents (:class:`SnapshotLeague`, :class:`SelfPlayWrapper`).
@@ -23,9 +21,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from zenrl.common.algorithms import algorithm
-from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
-from zenrl.common.config import RunConfig, SelfPlayConfig, config_from_dict
+from zenrl.common.checkpoints import TrainingState, list_checkpoints, read_checkpoint
+from zenrl.common.config import RunConfig, SelfPlayConfig
 from zenrl.common.errors import CheckpointError
 from zenrl.common.networks import ActorCritic, flat_obs, num_actions, obs_spec, sample_categorical
 
@@ -34,34 +31,14 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------------
 # Reading checkpoints
 # --------------------------------------------------------------------------------------------
-def checkpoint_config(state: Mapping[str, Any]) -> RunConfig:
-    """The run configuration saved in a checkpoint."""
-    return config_from_dict(state["config"])
-
-
-def policy_weights(state: Mapping[str, Any]) -> tuple[str, Mapping[str, torch.Tensor]]:
-    """``(algo, policy state dict)``: the online Q network of Ape-X, the actor-critic of A3C."""
+def build_network(state: TrainingState, observation_space: gym.Space, action_space: gym.Space) -> torch.nn.Module:
+    """The checkpoint's policy network (QNetwork for apex, ActorCritic for a3c), weights loaded,
+    in eval mode on the CPU. ``observation_space`` / ``action_space`` are the single env's
+    spaces; a mismatch with the trained network is a :class:`CheckpointError` naming the
+    difference."""
+    net = state.policy_network(obs_spec(observation_space), num_actions(action_space), state.run_config().network)
     try:
-        algo = algorithm(state.get("algo", "apex"))
-    except ValueError as e:
-        raise CheckpointError(f"checkpoint of {e}") from None
-    weights: Any = state
-    for key in algo.policy_state:
-        weights = weights.get(key) if isinstance(weights, Mapping) else None
-    if not isinstance(weights, Mapping):
-        raise CheckpointError(f"{algo.name} checkpoint has no {'.'.join(algo.policy_state)} state dict")
-    return algo.name, weights
-
-
-def build_network(state: Mapping[str, Any], observation_space: gym.Space, action_space: gym.Space) -> torch.nn.Module:
-    """The checkpoint's network (QNetwork for apex, ActorCritic for a3c), weights loaded, in eval
-    mode on the CPU. ``observation_space`` / ``action_space`` are the single env's spaces; a
-    mismatch with the trained network is a :class:`CheckpointError` naming the difference."""
-    cfg = checkpoint_config(state)
-    algo, weights = policy_weights(state)
-    net = algorithm(algo).policy_network(obs_spec(observation_space), num_actions(action_space), cfg.network)
-    try:
-        net.load_state_dict(weights)
+        net.load_state_dict(state.policy_state())
     except RuntimeError as e:
         raise CheckpointError(f"the checkpoint's network does not fit this env's spaces "
                               f"(obs {observation_space}, actions {action_space}): {e}") from None

@@ -21,6 +21,7 @@ import numpy as np
 
 from zenrl.common import protocol as P
 from zenrl.common.errors import NotReady, ProtocolError, RemoteTimeout
+from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
@@ -124,6 +125,9 @@ class ZenohReplayClient:
         return len(self._backlog)
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Publish new priorities (keys int64[B], priorities float32[B]) as one
+        :class:`PriorityUpdate`: the one way priorities reach the replay (the learner calls it
+        from its sender's thread, with the priorities of several batches merged)."""
         if self._prio is None:
             self._prio = self.node.publisher(self.keys.priorities)
         self._prio.put(P.PriorityUpdate(keys=np.asarray(keys, np.int64),
@@ -166,7 +170,16 @@ class SamplePrefetcher:
     per k batches taken, so the consumer pays the Zenoh call once per k training steps. The
     price: a batch's items were drawn up to k * ``in_flight`` batches before it is used, with
     the priorities of that time.
+
+    The helper thread is a watched one (:meth:`~zenrl.common.roles.Supervisor.thread` of the
+    ``sup`` given to :meth:`start`, the role's supervisor): an exception in one retry round is
+    counted and logged there and the next round runs; if the thread dies the role fails
+    (:class:`~zenrl.common.roles.RoleFailed`), and retries waiting with no round finished are
+    reported as ``stalled``.
     """
+
+    #: how long one round of the helper thread waits for a retry to be due (its idle heartbeat)
+    IDLE_WAIT_S = 0.5
 
     def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4,
                  prepare: Callable[[Sampled], Any] | None = None, backoff_s: float = 0.05,
@@ -190,14 +203,17 @@ class SamplePrefetcher:
         self._lock = threading.Lock()
         self._retry_due = threading.Event()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._retry_loop, name="sample-retry", daemon=True)
+        self._thread: Any = None
         self.not_ready = 0
         self.timeouts = 0
         self.errors = 0
         self.last_not_ready_reason = ""
 
-    def start(self) -> "SamplePrefetcher":
-        self._thread.start()
+    def start(self, sup: Supervisor | None = None) -> "SamplePrefetcher":
+        """Start the helper thread under ``sup`` (a private supervisor if None) and issue the
+        first ``in_flight`` requests."""
+        sup = sup if sup is not None else Supervisor()
+        self._thread = sup.thread("sample-retry", self._retry_round, self._stop, pending=lambda: self._retry)
         for _ in range(self.in_flight):
             self._issue()
         return self
@@ -205,7 +221,8 @@ class SamplePrefetcher:
     def stop(self) -> None:
         self._stop.set()
         self._retry_due.set()
-        self._thread.join(timeout=5)
+        if self._thread is not None:
+            self._thread.join(timeout=5)
 
     def _issue(self) -> None:
         if self._stop.is_set():
@@ -224,16 +241,18 @@ class SamplePrefetcher:
             self._retry += 1
         self._retry_due.set()
 
-    def _retry_loop(self) -> None:
-        while not self._stop.is_set():
-            self._retry_due.wait()
-            if self._stop.wait(self.backoff_s):
-                return
-            self._retry_due.clear()
-            with self._lock:
-                n, self._retry = self._retry, 0
-            for _ in range(n):
-                self._issue()
+    def _retry_round(self) -> None:
+        """One round of the helper thread: once a retry is due, wait ``backoff_s`` and re-issue
+        every request waiting for a retry."""
+        if not self._retry_due.wait(self.IDLE_WAIT_S):
+            return
+        if self._stop.wait(self.backoff_s):
+            return
+        self._retry_due.clear()
+        with self._lock:
+            n, self._retry = self._retry, 0
+        for _ in range(n):
+            self._issue()
 
     def _on_reply(self, payload: bytes | None) -> None:
         # Runs on a Zenoh thread: never block here, never call into Zenoh.

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import time
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -38,19 +37,18 @@ import numpy as np
 import torch
 
 from zenrl.common import protocol as P
+from zenrl.common.checkpoints import A3CTrainingState
 from zenrl.common.config import A3CConfig, LearnerConfig, RunConfig
 from zenrl.common.errors import ProtocolError
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
-from zenrl.learner.checkpoint import load_latest, save_checkpoint
-from zenrl.learner.base import LearnerBase, check_resume_compatible
+from zenrl.learner.base import LearnerBase
 from zenrl.learner.sender import BackgroundSender
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 1
 #: Largest version a worker may claim before the learner resyncs to it (keeps versions far from
 #: the uint64 limit of the wire format whatever a faulty worker sends).
 MAX_RESYNC_VERSION = 1 << 53
@@ -162,18 +160,21 @@ class GradientApplier:
         self.version = claimed + self.acfg.max_staleness
         return True
 
-    def state_dict(self) -> dict[str, Any]:
-        return {"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
-                "version": self.version, "updates": self.updates}
-
-    def load_state_dict(self, s: Mapping[str, Any]) -> None:
-        self.net.load_state_dict(s["model"])
-        self.opt.load_state_dict(s["optimizer"])
-        self.version, self.updates = int(s["version"]), int(s["updates"])
+    def load(self, model: Mapping[str, Any], optimizer: Mapping[str, Any], version: int, updates: int) -> None:
+        """Take back saved parameters, optimizer state and counters (a checkpoint's)."""
+        self.net.load_state_dict(model)
+        self.opt.load_state_dict(optimizer)
+        self.version, self.updates = int(version), int(updates)
         self._good = [p.detach().clone() for p in self.params.values()]
 
 
-class A3CLearnerService(LearnerBase):
+class A3CLearner(LearnerBase):
+    """The A3C parameter server as a :class:`~zenrl.common.roles.Worker`; its checkpoint schema
+    is :class:`~zenrl.common.checkpoints.A3CTrainingState`."""
+
+    schema = A3CTrainingState
+    version_noun = "params"
+
     def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
         super().__init__(cfg, node, run_id, learner_id)
         self.net = ActorCritic(self.spec, self.n_actions, cfg.network).to(self.device)
@@ -192,32 +193,26 @@ class A3CLearnerService(LearnerBase):
         self._resync_pending = False
         self._latest_weights: bytes | None = None
         if self.wants_resume(resume):
-            self._restore()
+            self.restore()
 
     # -- state -------------------------------------------------------------------------------
-    def training_state(self) -> dict[str, Any]:
-        s = self.applier.state_dict()
-        return {"format": CHECKPOINT_FORMAT, "algo": "a3c", "arch": self.arch, "version": s["version"],
-                "updates": s["updates"], "model": s["model"], "optimizer": s["optimizer"],
-                "env_steps_trained": self.env_steps_trained, "torch_rng": torch.get_rng_state(),
-                "config": self.cfg.model_dump(mode="json"), "saved_at": time.time()}
+    def training_state(self) -> A3CTrainingState:
+        a = self.applier
+        return A3CTrainingState(**self.base_fields(a.version), model=self.net.state_dict(), optimizer=a.opt.state_dict(),
+                                updates=a.updates, env_steps_trained=self.env_steps_trained)
 
-    def _restore(self) -> None:
-        state, path = load_latest(self.ckpt_dir)
-        check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
-        self.applier.load_state_dict(state)
+    def load_training_state(self, state: A3CTrainingState) -> None:  # type: ignore[override]
         # parameters published after that checkpoint had higher versions: continue above them
-        self.applier.version = self.versions.resume_version(self.applier.version)
-        self.env_steps_trained = int(state.get("env_steps_trained", 0))
-        torch.set_rng_state(state["torch_rng"])
-        log.info("resumed from %s: %d updates, params version %d", path, self.applier.updates, self.applier.version)
+        self.applier.load(state.model, state.optimizer, self.versions.resume_version(state.version), state.updates)
+        self.env_steps_trained = int(state.env_steps_trained)
+
+    def current_version(self) -> int:
+        return self.applier.version
 
     def save(self) -> Path:
         if not self.applier.params_finite():  # cannot persist after apply(); kept as a last guard
             self.applier._restore_good()
-        p = save_checkpoint(self.ckpt_dir, self.training_state(), self.applier.updates, self.cfg.learner.keep_checkpoints)
-        log.info("checkpoint %s", p)
-        return p
+        return self.write_checkpoint()
 
     # -- network -----------------------------------------------------------------------------
     def _on_gradients(self, key: str, payload: bytes) -> None:
@@ -264,7 +259,9 @@ class A3CLearnerService(LearnerBase):
         return self.applier.updates
 
     def start(self, node: Node, sup: Supervisor | None = None) -> None:
-        self._sender = BackgroundSender()
+        """Publishers, the weights queryable, the gradients subscription, the first weights; the
+        sender's thread watched by ``sup``."""
+        self._sender = BackgroundSender(sup=sup)
         self._w_pub = node.publisher(self.keys.weights, low_priority=True)
         node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
         node.subscribe(self.keys.gradients_all, self._on_gradients)

@@ -1,22 +1,28 @@
 """What the Ape-X and A3C learners share: the env's shapes, the resume check, and
-:class:`LearnerBase`, which runs either one in the common role loop."""
+:class:`LearnerBase`, which owns the checkpoint (its :class:`TrainingState` fields, writing,
+resuming) and runs either learner in the common role loop."""
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig, config_from_dict
+from zenrl.common.checkpoints import TrainingState
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import num_actions, obs_spec, resolve_device
 from zenrl.common.roles import Cadence, RoleLoop
-from zenrl.learner.checkpoint import VersionReservation, checkpoint_dir, list_checkpoints
+from zenrl.learner.checkpoint import VersionReservation, checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
+
+log = logging.getLogger(__name__)
 
 
 def env_shapes(cfg: RunConfig) -> tuple[dict, int]:
@@ -47,10 +53,21 @@ class LearnerBase:
     A learner is a :class:`~zenrl.common.roles.Worker`: subclasses give ``updates``,
     ``start``, ``step``, ``report``, ``save`` and ``close``; :meth:`run` hands them to the one
     :class:`~zenrl.common.roles.RoleLoop` (stats, metrics, log and checkpoint cadence, the
-    ``max_updates`` budget, the final checkpoint on stop)."""
+    ``max_updates`` budget, the final checkpoint on stop).
 
+    Checkpoints: the base owns the fields every learner saves (:meth:`base_fields`) and the
+    files (:meth:`write_checkpoint`, :meth:`read_latest`, :meth:`restore`); a subclass names
+    its schema (:attr:`schema`, a :class:`~zenrl.common.checkpoints.TrainingState` subclass),
+    builds it (:meth:`training_state`) and takes its own fields back (:meth:`load_training_state`)."""
+
+    #: the algorithm's checkpoint schema
+    schema: ClassVar[type[TrainingState]]
     #: updates applied so far (the step metrics and checkpoints are recorded against)
     updates: int
+    #: :func:`~zenrl.common.networks.arch_fingerprint` of the trained network (set by the subclass)
+    arch: str
+    #: what the log calls the published versions ("weights", "params")
+    version_noun: ClassVar[str] = "weights"
 
     def __init__(self, cfg: RunConfig, node: Any, run_id: str, learner_id: str) -> None:
         self.cfg = cfg
@@ -68,6 +85,50 @@ class LearnerBase:
     def wants_resume(self, resume: str) -> bool:
         """``resume``: "never", "require" (an error without a checkpoint) or "auto"."""
         return resume == "require" or (resume == "auto" and bool(list_checkpoints(self.ckpt_dir)))
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def base_fields(self, version: int) -> dict[str, Any]:
+        """The :class:`TrainingState` fields every learner saves, for weights ``version``."""
+        return {"arch": self.arch, "version": int(version), "config": self.cfg.model_dump(mode="json"),
+                "torch_rng": torch.get_rng_state(), "saved_at": time.time()}
+
+    def training_state(self) -> TrainingState:
+        """The state to save now: ``self.schema(**self.base_fields(version), <own fields>)``."""
+        raise NotImplementedError
+
+    def load_training_state(self, state: TrainingState) -> None:
+        """Take back the algorithm's own fields of ``state`` (one of :attr:`schema`) and continue
+        its weights versions above ``self.versions.resume_version(state.version)``."""
+        raise NotImplementedError
+
+    def write_checkpoint(self) -> Path:
+        """Save :meth:`training_state` as the run's newest checkpoint (the oldest beyond
+        ``learner.keep_checkpoints`` pruned)."""
+        p = save_checkpoint(self.ckpt_dir, self.training_state(), self.cfg.learner.keep_checkpoints)
+        log.info("checkpoint %s", p)
+        return p
+
+    def read_latest(self) -> tuple[TrainingState, Path]:
+        """The run's newest readable checkpoint, checked to be one this learner can continue
+        (:func:`check_resume_compatible`); :class:`CheckpointError` otherwise."""
+        state, path = load_latest(self.ckpt_dir)
+        if not isinstance(state, self.schema):
+            raise CheckpointError(f"cannot resume: {path} is a {state.algo} checkpoint, this learner is {self.schema.algo}")
+        check_resume_compatible(state.config, self.cfg, state.arch, self.arch)
+        return state, path
+
+    def restore(self) -> None:
+        """Continue from the run's newest checkpoint: the algorithm's state, the weights
+        version and the random state."""
+        state, path = self.read_latest()
+        self.load_training_state(state)
+        if state.torch_rng is not None:
+            torch.set_rng_state(state.torch_rng)
+        log.info("resumed from %s: %d updates, %s version %d", path, self.updates, self.version_noun, self.current_version())
+
+    def current_version(self) -> int:
+        """The weights version last published (or restored)."""
+        raise NotImplementedError
 
     def done(self) -> bool:
         return self.cfg.max_updates is not None and self.updates >= self.cfg.max_updates

@@ -1,32 +1,33 @@
-"""Writing checkpoints: one training state per file, written atomically (temp file +
-``os.replace``), the newest K kept; and the weights-version high-water mark. Reading them (the
-newest readable one, a corrupt newest file skipped) is :mod:`zenrl.common.checkpoints`."""
+"""Writing checkpoints: one :class:`~zenrl.common.checkpoints.TrainingState` per file, written
+atomically (temp file + ``os.replace``), the newest K kept; and the weights-version high-water
+mark. The schema and reading (the newest readable one, a corrupt newest file skipped) are
+:mod:`zenrl.common.checkpoints`."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 import torch
 
-from zenrl.common.checkpoints import checkpoint_name, list_checkpoints, load_latest, read_checkpoint
+from zenrl.common.checkpoints import TrainingState, checkpoint_name, list_checkpoints, load_latest, read_checkpoint
 
-__all__ = ["checkpoint_dir", "list_checkpoints", "load_latest", "read_checkpoint", "save_checkpoint",
+__all__ = ["TrainingState", "checkpoint_dir", "list_checkpoints", "load_latest", "read_checkpoint", "save_checkpoint",
            "VersionReservation", "read_version_mark", "write_version_mark"]
+
 
 def checkpoint_dir(runs_dir: str | os.PathLike[str], run_id: str) -> Path:
     return Path(runs_dir) / run_id / "checkpoints"
 
 
-def save_checkpoint(directory: str | os.PathLike[str], state: dict[str, Any], step: int, keep: int) -> Path:
-    """Write ``state`` as ``ckpt-<step>.pt`` atomically and prune to the newest ``keep``."""
+def save_checkpoint(directory: str | os.PathLike[str], state: TrainingState, keep: int) -> Path:
+    """Write ``state`` as ``ckpt-<state.updates>.pt`` atomically and prune to the newest ``keep``."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    path = d / checkpoint_name(step)
+    path = d / checkpoint_name(state.updates)
     tmp = d / f".{path.name}.tmp-{os.getpid()}"
     with open(tmp, "wb") as f:
-        torch.save(state, f)
+        torch.save(state.to_dict(), f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)

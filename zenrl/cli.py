@@ -1,7 +1,8 @@
 """``zenrl`` command line: one subcommand per role plus the launcher and tools.
 
 Every role command takes ``--config FILE`` and ``--set section.field=value`` (repeatable);
-``zenrl config --list`` prints every option with its default and description.
+its ``--help`` lists the options that role reads (:data:`ROLE_OPTIONS`), ``zenrl run --help``
+and ``zenrl config --list`` every option with its default and description.
 """
 
 from __future__ import annotations
@@ -39,10 +40,29 @@ def quiet_zenoh(level: str) -> None:
     init_zenoh_logging("warn" if level.upper() == "DEBUG" else "error")
 
 
-def _options_epilog() -> str:
+#: The configuration each role process reads: whole sections, or single options as
+#: ``section.field`` (a role's ``--help`` lists these; ``zenrl run`` passes every option on).
+ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
+    "replay": ("run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step"),
+    "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "network", "env", "transport",
+                "actor.num_actors"),
+    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "selfplay", "network", "env", "transport",
+              "learner.gamma"),
+    "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "network", "env", "transport"),
+}
+
+
+def _options_epilog(role: str | None = None) -> str:
+    """Every option with its default and description, or only those ``role`` reads."""
     rows = describe_options()
+    if role is None:
+        lines = ["configuration options (YAML file, ZENRL__SECTION__FIELD env vars, or --set section.field=value):"]
+    else:
+        wanted = ROLE_OPTIONS[role]
+        rows = [r for r in rows if r[0] in wanted or r[0].split(".", 1)[0] in wanted]
+        lines = [f"configuration options the {role} reads (YAML file, ZENRL__SECTION__FIELD env vars, or "
+                 "--set section.field=value; every option: zenrl config --list):"]
     width = max(len(r[0]) for r in rows)
-    lines = ["configuration options (YAML file, ZENRL__SECTION__FIELD env vars, or --set section.field=value):"]
     for name, default, desc in rows:
         lines.append(f"  {name:<{width}}  {desc} [default: {default}]")
     return "\n".join(lines)
@@ -117,15 +137,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
-    from zenrl.learner.service import main
+    from zenrl.processes import learner_main
 
-    return _run_role(args, "learner", lambda c, r, s: main(c, r, s, resume=args.resume))
+    return _run_role(args, "learner", lambda c, r, s: learner_main(c, r, s, resume=args.resume))
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
-    from zenrl.actor.service import main
+    from zenrl.processes import actor_main
 
-    return _run_role(args, "actor", lambda c, r, s: main(c, r, s, actor_id=args.id, slot=args.slot))
+    return _run_role(args, "actor", lambda c, r, s: actor_main(c, r, s, actor_id=args.id, slot=args.slot))
 
 
 def cmd_evaluator(args: argparse.Namespace) -> int:
@@ -306,21 +326,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"zenrl {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     fmt = argparse.RawDescriptionHelpFormatter
-    epilog = _options_epilog()
 
-    s = sub.add_parser("run", help="run everything on this machine (embedded router)", epilog=epilog, formatter_class=fmt)
+    s = sub.add_parser("run", help="run everything on this machine (embedded router)", epilog=_options_epilog(),
+                       formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--actors", type=int, help="number of actor processes (actor.num_actors)")
     s.add_argument("--resume", metavar="RUN_DIR", help="resume the run in RUN_DIR (runs/<id>) from its newest checkpoint")
     s.add_argument("--no-progress", action="store_true", help="no live progress display")
     s.set_defaults(func=cmd_run)
 
-    s = sub.add_parser("replay", help="the prioritized replay service", epilog=epilog, formatter_class=fmt)
+    s = sub.add_parser("replay", help="the prioritized replay service", epilog=_options_epilog("replay"), formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--id", default="replay", help="service id")
     s.set_defaults(func=cmd_replay)
 
-    s = sub.add_parser("learner", help="the learner", epilog=epilog, formatter_class=fmt)
+    s = sub.add_parser("learner", help="the learner", epilog=_options_epilog("learner"), formatter_class=fmt)
     _add_config_args(s)
     g = s.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_const", const="require", dest="resume", default="never",
@@ -329,13 +349,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue from the newest valid checkpoint if there is one, else start fresh (for restart policies)")
     s.set_defaults(func=cmd_learner)
 
-    s = sub.add_parser("actor", help="an actor process (many envs)", epilog=epilog, formatter_class=fmt)
+    s = sub.add_parser("actor", help="an actor process (many envs)", epilog=_options_epilog("actor"), formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--id", default=None, help="actor id (default: actor-<pid>)")
     s.add_argument("--slot", type=int, default=None, help="exploration slot (default: from config or the running system)")
     s.set_defaults(func=cmd_actor)
 
-    s = sub.add_parser("evaluator", help="greedy evaluation of the latest weights", epilog=epilog, formatter_class=fmt)
+    s = sub.add_parser("evaluator", help="greedy evaluation of the latest weights", epilog=_options_epilog("evaluator"),
+                       formatter_class=fmt)
     _add_config_args(s)
     s.set_defaults(func=cmd_evaluator)
 

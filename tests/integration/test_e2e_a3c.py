@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from tests.conftest import run_zenrl, zenrl_pids
+from zenrl.common.checkpoints import A3CTrainingState, read_checkpoint
 
 pytestmark = pytest.mark.integration
 
@@ -38,9 +39,9 @@ def test_zenrl_run_a3c_learns_cartpole(tmp_path):
     assert all(v == 0 for v in summary["restarts"].values()), summary["restarts"]
     ckpts = sorted((run_dir / "checkpoints").glob("ckpt-*.pt"))
     assert ckpts, "the learner saved no checkpoint"
-    state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)
-    assert state["algo"] == "a3c" and state["updates"] >= 2000
-    assert all(torch.isfinite(t).all() for t in state["model"].values())
+    state = read_checkpoint(ckpts[-1])
+    assert isinstance(state, A3CTrainingState) and state.updates >= 2000
+    assert all(torch.isfinite(t).all() for t in state.policy_state().values())
     assert (run_dir / "config.yaml").is_file() and (run_dir / "metrics.jsonl").is_file()
     assert list((run_dir / "tb").rglob("events.out.tfevents.*")), "no TensorBoard events"
     assert not _leftovers(run_id), _leftovers(run_id)

@@ -16,7 +16,7 @@ from zenrl.common.errors import ProtocolError, RemoteTimeout
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
 from zenrl.common.specs import ArraySpec
 from zenrl.common.transport import LatestValue
-from zenrl.learner.a3c import APPLIED, STALE, UNKNOWN_VERSION, A3CLearnerService, GradientApplier
+from zenrl.learner.a3c import APPLIED, STALE, UNKNOWN_VERSION, A3CLearner, GradientApplier
 
 G = 0.9
 
@@ -323,7 +323,7 @@ def test_wrong_names_and_shapes_rejected(tmp_path):
 
 def test_service_counts_rejections_and_checkpoint_round_trip(tmp_path):
     cfg = _cfg(tmp_path, **{"network.hidden": "[8]"})
-    svc = A3CLearnerService(cfg, node=None, run_id="ck")
+    svc = A3CLearner(cfg, node=None, run_id="ck")
     svc.applier.next_version()
     net = svc.net
     bad = P.Gradients("w1", 1, 10, {k: np.zeros((1,), np.float32) for k, _ in net.named_parameters()}).encode()
@@ -333,7 +333,7 @@ def test_service_counts_rejections_and_checkpoint_round_trip(tmp_path):
     assert svc.handle("zenrl/ck/gradients/w0", _grad_msg(net, 1, 0.1).encode()) == APPLIED
     assert svc.env_steps_trained == 10
     svc.save()
-    again = A3CLearnerService(cfg, node=None, run_id="ck", resume="require")
+    again = A3CLearner(cfg, node=None, run_id="ck", resume="require")
     assert again.applier.version == 1 and again.applier.updates == 1
     assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), again.net.state_dict().values()))
     # the same next gradient gives the same params (optimizer state restored too)

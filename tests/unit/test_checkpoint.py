@@ -1,10 +1,14 @@
-"""Training state: save -> restore -> the next update is bitwise identical; atomic files, keep-K,
-corrupt newest skipped; incompatible configs refused; weight versions never go back."""
+"""Training state: save -> restore -> the next update is bitwise identical; every algorithm's
+learner round-trips its checkpoint (every tensor and counter); the schema reads the files of the
+current format and names what a file lacks; atomic files, keep-K, corrupt newest skipped;
+incompatible configs refused; weight versions never go back."""
 
 import numpy as np
 import pytest
 import torch
 
+from zenrl.common.checkpoints import (TRAINING_STATES, A3CTrainingState, ApexTrainingState, TrainingState,
+                                     training_state_class)
 from zenrl.common.config import load_config
 from zenrl.common.errors import CheckpointError
 from zenrl.common.specs import ArraySpec
@@ -34,12 +38,15 @@ def test_resume_next_update_is_bitwise_identical(tmp_path):
     a = _learner(cfg)
     for i in range(7):
         a.update(a.batch_to_tensors(*_batch(i)))
-    state = {"format": 1, "learner": a.state_dict(), "torch_rng": torch.get_rng_state(), "config": cfg.model_dump(mode="json")}
-    path = save_checkpoint(tmp_path, state, a.updates, keep=3)
+    state = ApexTrainingState(arch="QNetwork-test", version=1, config=cfg.model_dump(mode="json"),
+                              torch_rng=torch.get_rng_state(), learner=a.state_dict())
+    path = save_checkpoint(tmp_path, state, keep=3)
+    assert path.name == "ckpt-000000000007.pt"
 
     b = _learner(cfg)
     loaded = read_checkpoint(path)
-    b.load_state_dict(loaded["learner"])
+    assert isinstance(loaded, ApexTrainingState)
+    b.load_state_dict(loaded.learner)
     assert b.updates == 7 and b.beta() == a.beta()
     for i in range(7, 10):  # crosses a target-network update (period 3)
         ma, pa = a.update(a.batch_to_tensors(*_batch(i)))
@@ -51,15 +58,20 @@ def test_resume_next_update_is_bitwise_identical(tmp_path):
         assert torch.equal(va, vb)
 
 
+def _a3c_state(updates: int) -> A3CTrainingState:
+    return A3CTrainingState(arch="ActorCritic-test", version=updates, config={}, model={"w": torch.zeros(2)},
+                            optimizer={}, updates=updates)
+
+
 def test_keep_k_and_corrupt_newest_is_skipped(tmp_path, caplog):
     for step in (10, 20, 30, 40):
-        save_checkpoint(tmp_path, {"format": 1, "config": {}, "step": step}, step, keep=3)
+        save_checkpoint(tmp_path, _a3c_state(step), keep=3)
     files = list_checkpoints(tmp_path)
     assert [f.name for f in files] == ["ckpt-000000000020.pt", "ckpt-000000000030.pt", "ckpt-000000000040.pt"]
     assert not list(tmp_path.glob(".*tmp*"))
     files[-1].write_bytes(files[-1].read_bytes()[:50])  # truncated newest
     state, path = load_latest(tmp_path)
-    assert state["step"] == 30 and path == files[-2]
+    assert state.updates == 30 and path == files[-2]
     assert "unreadable" in caplog.text
 
 
@@ -120,3 +132,99 @@ def test_version_reservation_writes_once_per_block_and_resumes_above(tmp_path, m
     assert r2.resume_version(50) == 202 and r2.resume_version(500) == 500
     with pytest.raises(ValueError):
         C.VersionReservation(tmp_path, block=0)
+
+
+# --------------------------------------------------------------------------------------------
+# One schema: every algorithm's learner writes it and restores from it
+# --------------------------------------------------------------------------------------------
+def _train_one_step(svc) -> None:
+    """One real update of ``svc`` (a learner of either algorithm), without a network."""
+    if svc.schema is ApexTrainingState:
+        data, w = _batch(1, B=16)
+        m, prios = svc.dqn.update(svc.dqn.batch_to_tensors(data, w))
+        assert prios is not None
+        svc.transitions_consumed += len(prios)
+        svc.version = 3
+    else:
+        from zenrl.common import protocol as P
+
+        svc.applier.next_version()
+        g = {k: np.full(p.shape, 0.1, np.float32) for k, p in svc.net.named_parameters()}
+        assert svc.handle("k/w0", P.Gradients(worker_id="w0", version=1, steps=10, grads=g).encode()) == "applied"
+
+
+def _assert_same(a, b, where="state"):
+    """Every tensor equal and every counter equal, recursively."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), (where, set(a) ^ set(b))
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, (where, a, b)
+
+
+@pytest.mark.parametrize("algo", sorted(TRAINING_STATES))
+def test_every_algorithm_round_trips_its_checkpoint(tmp_path, algo):
+    from zenrl.algorithms import ALGORITHMS
+
+    alg = ALGORITHMS[algo]
+    cfg = load_config(None, [f"runs_dir={tmp_path}", f"algo={algo}", "network.hidden=[8]"], environ={})
+    svc = alg.learner(cfg, None, "rt")
+    _train_one_step(svc)
+    saved = svc.training_state()
+    assert type(saved) is alg.checkpoint and saved.updates == 1
+    path = svc.save()
+    assert path.name == "ckpt-000000000001.pt"
+
+    torch.manual_seed(12345)  # the fresh learner's random state differs until it restores
+    again = alg.learner(cfg, None, "rt", resume="require")
+    restored = again.training_state()
+    assert type(restored) is alg.checkpoint
+    a, b = saved.to_dict(), restored.to_dict()
+    a.pop("saved_at"), b.pop("saved_at")
+    _assert_same(a, b)
+    assert again.updates == svc.updates == 1 and again.current_version() == svc.current_version()
+    # what tools and self-play read: the same policy network
+    _assert_same(dict(read_checkpoint(path).policy_state()), dict(svc.training_state().policy_state()))
+
+
+def test_files_of_the_current_format_load(tmp_path):
+    """The layout checkpoints already on disk have (format 1): a run resumed after an upgrade
+    and every tool must read it."""
+    cfg = load_config(None, ["network.hidden=[8]"], environ={}).model_dump(mode="json")
+    w = {"trunk.0.weight": torch.ones(8, 4)}
+    apex = {"format": 1, "algo": "apex", "arch": "QNetwork-x", "version": 7, "transitions_consumed": 640,
+            "learner": {"online": w, "target": w, "optimizer": {}, "updates": 20}, "torch_rng": torch.get_rng_state(),
+            "config": cfg, "saved_at": 1.0}
+    a3c = {"format": 1, "algo": "a3c", "arch": "ActorCritic-x", "version": 5, "updates": 30, "model": w,
+           "optimizer": {}, "env_steps_trained": 600, "torch_rng": torch.get_rng_state(), "config": cfg, "saved_at": 2.0}
+    for name, d, updates in (("apex", apex, 20), ("a3c", a3c, 30)):
+        p = tmp_path / f"{name}.pt"
+        torch.save(d, p)
+        s = read_checkpoint(p)
+        assert type(s) is TRAINING_STATES[name] and s.updates == updates and s.version == d["version"]
+        assert torch.equal(s.policy_state()["trunk.0.weight"], w["trunk.0.weight"])
+        assert s.run_config().network.hidden == [8]
+        _assert_same(s.to_dict(), d)  # written back, the same layout
+    no_algo = {k: v for k, v in apex.items() if k != "algo"}  # the earliest files named no algo: Ape-X
+    assert isinstance(TrainingState.from_dict(no_algo), ApexTrainingState)
+
+
+def test_a_file_the_schema_cannot_read_is_a_clear_error():
+    cfg = {"algo": "apex"}
+    with pytest.raises(CheckpointError, match=r"\(apex\) lacks arch, learner"):
+        TrainingState.from_dict({"format": 1, "algo": "apex", "version": 1, "config": cfg})
+    with pytest.raises(CheckpointError, match="unknown algorithm 'ppo'"):
+        TrainingState.from_dict({"format": 1, "algo": "ppo", "config": cfg})
+    with pytest.raises(CheckpointError, match="format 2"):
+        TrainingState.from_dict({"format": 2, "algo": "apex", "config": cfg})
+    with pytest.raises(CheckpointError, match="not a zenrl training state"):
+        TrainingState.from_dict({"weights": 1})
+    with pytest.raises(CheckpointError, match="unknown algorithm"):
+        training_state_class("dqn")

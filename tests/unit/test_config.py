@@ -103,3 +103,38 @@ def test_every_shipped_config_loads_and_builds_its_env(path):
         assert env.observation_space.contains(obs)
     finally:
         env.close()
+
+
+def _help(capsys, *argv) -> str:
+    from zenrl.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(list(argv))
+    assert e.value.code == 0
+    return capsys.readouterr().out
+
+
+def _listed(text: str) -> set[str]:
+    names = {r[0] for r in describe_options()}
+    return {line.split()[0] for line in text.splitlines() if line.startswith("  ") and line.split()[0] in names}
+
+
+def test_each_roles_help_lists_the_options_it_reads_and_run_lists_all(capsys):
+    from zenrl.cli import ROLE_OPTIONS
+
+    every = {r[0] for r in describe_options()}
+    sections = {n.split(".", 1)[0] for n in every}
+    for role, wanted in ROLE_OPTIONS.items():
+        assert all(w in every or w in sections for w in wanted), (role, wanted)  # no stale name
+        listed = _listed(_help(capsys, role, "--help"))
+        assert listed == {n for n in every if n in wanted or n.split(".", 1)[0] in wanted}, role
+    learner = _listed(_help(capsys, "learner", "--help"))
+    assert {"learner.lr", "transport.router", "network.hidden", "env.id", "a3c.max_staleness"} <= learner
+    assert not any(n.startswith(("replay.", "evaluator.", "selfplay.")) for n in learner)
+    actor = _listed(_help(capsys, "actor", "--help"))
+    assert "actor.envs_per_actor" in actor and "learner.gamma" in actor and "learner.lr" not in actor
+    assert _listed(_help(capsys, "run", "--help")) == every
+    from zenrl.cli import main
+
+    assert main(["config", "--list"]) == 0
+    assert _listed(capsys.readouterr().out) == every

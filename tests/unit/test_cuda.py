@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from zenrl.common import protocol as P
+from zenrl.common.checkpoints import ApexTrainingState
 from zenrl.common.config import LearnerConfig, NetworkConfig, load_config
 from zenrl.common.networks import ActorCritic, QNetwork, params_to_arrays
 from zenrl.common.specs import ArraySpec
@@ -62,12 +63,13 @@ def test_cuda_checkpoint_resumes_on_cpu_and_cuda(tmp_path):
     a = DQNLearner(SPEC, 2, cfg.network, cfg.learner, CUDA)
     for i in range(5):
         a.update(a.batch_to_tensors(*_batch(i)))
-    path = save_checkpoint(tmp_path, {"format": 1, "learner": a.state_dict()}, a.updates, keep=2)
+    saved = ApexTrainingState(arch="QNetwork-test", version=0, config=cfg.model_dump(mode="json"), learner=a.state_dict())
+    path = save_checkpoint(tmp_path, saved, keep=2)
     state = read_checkpoint(path)  # map_location cpu, weights_only
-    assert all(not v.is_cuda for v in state["learner"]["online"].values())
+    assert all(not v.is_cuda for v in state.policy_state().values())
     for dev in (CUDA, CPU):
         b = DQNLearner(SPEC, 2, cfg.network, cfg.learner, dev)
-        b.load_state_dict(state["learner"])
+        b.load_state_dict(state.learner)
         assert b.updates == 5
         for p in b.online.parameters():
             assert p.device.type == dev.type

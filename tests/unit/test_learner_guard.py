@@ -69,10 +69,10 @@ def test_guard_counts_logs_once_per_interval_and_asks_for_rollback(caplog):
 
 
 def test_service_never_saves_or_publishes_nonfinite_params_and_rolls_back(tmp_path):
-    from zenrl.learner.service import ApexLearnerService
+    from zenrl.learner.apex import ApexLearner
 
     cfg = load_config(None, [f"runs_dir={tmp_path}", "network.hidden=[8]", "learner.guard_max_bad_updates=2"])
-    svc = ApexLearnerService(cfg, node=None, run_id="g")
+    svc = ApexLearner(cfg, node=None, run_id="g")
     assert svc.save() is not None
     good = _params(svc.dqn.online)
     with torch.no_grad():
@@ -112,11 +112,11 @@ def test_actor_refuses_weights_that_would_load_as_inf():
 
 
 def test_k_skipped_updates_in_a_row_roll_back_to_the_last_checkpoint(tmp_path):
-    from zenrl.learner.service import ApexLearnerService
+    from zenrl.learner.apex import ApexLearner
 
     cfg = load_config(None, [f"runs_dir={tmp_path}", "network.hidden=[8]", "learner.guard_max_bad_updates=3",
                              "learner.lr=0.01"])
-    svc = ApexLearnerService(cfg, node=None, run_id="k")
+    svc = ApexLearner(cfg, node=None, run_id="k")
     rng = np.random.default_rng(0)
     B = 16
     data = {"obs": rng.uniform(-0.1, 0.1, (B, 4)).astype(np.float32),

@@ -1,6 +1,6 @@
 """The learner's I/O helpers with in-process fakes: the background sender (priorities merged in
 order, failures counted) and the sample prefetcher (requests in flight, retries, prepare, several
-batches per request)."""
+batches per request); both threads watched by the role's supervisor."""
 
 import threading
 
@@ -9,6 +9,7 @@ import pytest
 
 from zenrl.common import protocol as P
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
+from zenrl.common.roles import RoleFailed, Supervisor
 from zenrl.learner.sender import BackgroundSender
 from tests.conftest import wait_until
 
@@ -25,14 +26,27 @@ class FakePublisher:
         self.puts.append(payload)
 
 
+class PublishingNode:
+    """A node whose publishers record what is put on them, by key."""
+
+    def __init__(self) -> None:
+        self.pubs: dict[str, FakePublisher] = {}
+
+    def publisher(self, key: str, **_kw) -> FakePublisher:
+        return self.pubs.setdefault(key, FakePublisher())
+
+
 def test_sender_merges_queued_priorities_in_order_and_keeps_other_payloads():
-    prio, weights = FakePublisher(), FakePublisher()
+    node, weights = PublishingNode(), FakePublisher()
+    client = ZenohReplayClient(node, P.Keys("unit"))
     s = BackgroundSender(linger_s=0.5)  # long enough that all four items gather before a send
-    s.send_priorities(prio, np.array([1, 2, 3]), np.array([0.1, 0.2, 0.3], np.float32))
+    # the replay client's verb is the one way priorities go out
+    s.send_priorities(client.update_priorities, np.array([1, 2, 3]), np.array([0.1, 0.2, 0.3], np.float32))
     s.send(weights, b"w1")
-    s.send_priorities(prio, np.array([2, 7]), np.array([0.9, 0.7], np.float32))
-    s.send_priorities(prio, np.array([8]), np.array([0.8], np.float32))
+    s.send_priorities(client.update_priorities, np.array([2, 7]), np.array([0.9, 0.7], np.float32))
+    s.send_priorities(client.update_priorities, np.array([8]), np.array([0.8], np.float32))
     s.close()
+    prio = node.pubs[P.Keys("unit").priorities]
     assert weights.puts == [b"w1"]
     assert len(prio.puts) == 1
     u = P.PriorityUpdate.decode(prio.puts[0])
@@ -43,15 +57,81 @@ def test_sender_merges_queued_priorities_in_order_and_keeps_other_payloads():
 
 def test_sender_without_linger_sends_each_item_and_counts_failed_puts():
     pub = FakePublisher(fail_first=1)
-    s = BackgroundSender(linger_s=0.0, max_message_bytes=200)
+    client = ZenohReplayClient(PublishingNode(), P.Keys("unit"), max_message_bytes=200)
+    s = BackgroundSender(linger_s=0.0)
     s.send(pub, b"a")
     wait_until(lambda: s.failed == 1, 5, "the first put to fail", 0.005)
     s.send(pub, b"b")
-    s.send_priorities(pub, np.arange(100), np.ones(100, np.float32))  # over the 200-byte cap
+    s.send_priorities(client.update_priorities, np.arange(100), np.ones(100, np.float32))  # over the 200-byte cap
     s.send(pub, b"c")
     s.close()
     assert pub.puts == [b"b", b"c"]
     assert (s.sent, s.failed) == (2, 2)
+
+
+class Fatal(BaseException):
+    """Not an Exception: kills the thread it is raised in (what supervision must notice)."""
+
+
+class RaisingPublisher(FakePublisher):
+    def __init__(self, error: BaseException) -> None:
+        super().__init__()
+        self.error = error
+
+    def put(self, payload: bytes) -> None:
+        if self.error is not None:
+            e, self.error = self.error, None
+            raise e
+        self.puts.append(payload)
+
+
+def test_sender_whose_put_raises_once_counts_it_in_the_supervisor_and_keeps_sending():
+    sup = Supervisor()
+    pub = RaisingPublisher(ConnectionError("link down"))
+    s = BackgroundSender(sup=sup)
+    try:
+        s.send(pub, b"first")
+        wait_until(lambda: sup.errors["ConnectionError"] == 1, 5, "the failed put counted", 0.005)
+        s.send(pub, b"next")
+        wait_until(lambda: pub.puts == [b"next"], 5, "the next payload sent", 0.005)
+        assert s.failed == 1 and s.sent == 1
+        assert sup.values()["errors/ConnectionError"] == 1
+        sup.check()  # the thread goes on: the role is fine
+    finally:
+        s.close()
+    assert not s._t.is_alive()
+
+
+def test_a_dead_sender_thread_fails_the_role():
+    sup = Supervisor()
+    s = BackgroundSender(sup=sup)
+    s.send(RaisingPublisher(Fatal()), b"x")
+    wait_until(lambda: not s._t.is_alive(), 5, "the sender's thread to die", 0.005)
+    with pytest.raises(RoleFailed, match="thread sender failed: Fatal"):
+        sup.check()
+
+
+def test_a_dead_prefetcher_helper_thread_fails_the_role():
+    node, sup = FakeNode(), Supervisor()
+    betas = iter([0.4, 0.4, 0.4])  # the first requests; the retry after them raises
+
+    def beta():
+        try:
+            return next(betas)
+        except StopIteration:
+            raise Fatal() from None
+
+    client = ZenohReplayClient(node, P.Keys("unit"), timeout_s=1.0)
+    pf = SamplePrefetcher(client, 4, beta, in_flight=3, backoff_s=0.01).start(sup)
+    try:
+        assert [t.name for t in sup.threads] == ["sample-retry"]
+        sup.check()
+        node.take()(None)  # timed out: the helper thread retries, and dies doing it
+        wait_until(lambda: not sup.threads[0].is_alive(), 5, "the helper thread to die", 0.005)
+        with pytest.raises(RoleFailed, match="thread sample-retry failed"):
+            sup.check()
+    finally:
+        pf.stop()
 
 
 def test_sender_drops_and_counts_over_its_queue_limit():

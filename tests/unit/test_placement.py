@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from zenrl.common.algorithms import algorithm
+from zenrl.algorithms import algorithm
 from zenrl.placement import ACTOR_NICE, CPUS_ENV, NICE_ENV, Placement, apply_from_env, plan
 
 linux_only = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux-only")

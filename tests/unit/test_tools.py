@@ -20,7 +20,8 @@ from zenrl.common.config import RunConfig, SelfPlayConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import ActorCritic, QNetwork, arch_fingerprint, num_actions, obs_spec
-from zenrl.common.policy_io import (SnapshotLeague, checkpoint_config, load_policy, read_checkpoint, sampled_actions,
+from zenrl.common.checkpoints import A3CTrainingState, ApexTrainingState, training_state_class
+from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, sampled_actions,
                                     single_to_flat, wrap_selfplay)
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
@@ -41,19 +42,18 @@ def make_checkpoint(directory: Path, env_id: str, kwargs: dict, algo: str = "ape
     spec, n = obs_spec(env.observation_space), num_actions(env.action_space)
     env.close()
     torch.manual_seed(seed)
+    schema = training_state_class(algo)
+    net = schema.policy_network(spec, n, cfg.network)
+    base = {"arch": arch_fingerprint(net), "version": 1, "config": cfg.model_dump(mode="json")}
     if algo == "a3c":
-        net = ActorCritic(spec, n, cfg.network)
-        state = {"format": 1, "algo": "a3c", "arch": arch_fingerprint(net), "version": 1, "updates": step,
-                 "model": net.state_dict(), "optimizer": {}, "config": cfg.model_dump(mode="json")}
+        state = A3CTrainingState(**base, updates=step, model=net.state_dict(), optimizer={})
     else:
-        net = QNetwork(spec, n, cfg.network)
         with torch.no_grad():  # a policy that does not pick one action everywhere
             for p in net.parameters():
                 p.mul_(3.0)
-        state = {"format": 1, "algo": "apex", "arch": arch_fingerprint(net), "version": 1,
-                 "learner": {"online": net.state_dict(), "target": net.state_dict(), "optimizer": {}, "updates": step},
-                 "config": cfg.model_dump(mode="json")}
-    return save_checkpoint(directory, state, step, keep=100)
+        state = ApexTrainingState(**base, learner={"online": net.state_dict(), "target": net.state_dict(),
+                                                   "optimizer": {}, "updates": step})
+    return save_checkpoint(directory, state, keep=100)
 
 
 @pytest.fixture(scope="module")
@@ -225,7 +225,7 @@ def test_export_matches_greedy_actions(ckpts, tmp_path, which):
     out = tmp_path / "policy.pt"
     meta = tools.export(str(ckpt), str(out))
     state = read_checkpoint(ckpt)
-    env = make_env(tools.env_config_for(checkpoint_config(state)))
+    env = make_env(tools.env_config_for(state.run_config()))
     policy = load_policy(ckpt, env.observation_space, env.action_space)
     with warnings.catch_warnings():  # torch 2.13 deprecates TorchScript (it still loads)
         warnings.simplefilter("ignore", DeprecationWarning)

@@ -21,7 +21,6 @@ from typing import Any
 import yaml
 
 from zenrl import EXIT_CONFIG
-from zenrl.common.algorithms import algorithm
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError
 from zenrl.launcher.display import Progress, render_table
@@ -131,7 +130,12 @@ class Launcher:
         # updates when this launch began: the learner resumes from its checkpoint, which may be
         # older than the last count an earlier segment heard
         self.updates_at_start: int | None = None if resume else 0
-        self.placement = plan(self.cfg.cpu_placement, algorithm(self.cfg.algo).places_learner,
+        # imported here: the registry imports every role (and torch), which `zenrl status`, a
+        # user of this package too, does not need
+        from zenrl.algorithms import algorithm
+
+        self.algorithm = algorithm(self.cfg.algo)
+        self.placement = plan(self.cfg.cpu_placement, self.algorithm.places_learner,
                               self.cfg.learner.torch_threads, usable_cpus())
         self.endpoint = ""
         self._metrics = None
@@ -169,7 +173,7 @@ class Launcher:
 
     def _plan(self) -> list[Child]:
         kids = []
-        if algorithm(self.cfg.algo).uses_replay:
+        if self.algorithm.uses_replay:
             kids.append(Child("replay", "replay", []))
         kids.append(Child("learner", "learner", ["--resume"] if self.resume else []))
         for i in range(self.cfg.actor.num_actors):

@@ -22,7 +22,7 @@ from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
-from zenrl.common.policy_io import GreedyPolicy, build_network, checkpoint_config, load_policy
+from zenrl.common.policy_io import GreedyPolicy, build_network, load_policy
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +161,7 @@ def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = Non
         cfg = exported_config(exported.meta)
     else:
         state = read_checkpoint(checkpoint)
-        cfg = checkpoint_config(state)
+        cfg = state.run_config()
     ecfg = env_config_for(cfg, env_id, env_kwargs)
     if opponents is not None:
         ecfg = EnvConfig(id=ecfg.id, kwargs=_match_kwargs(ecfg.kwargs, opponents), max_episode_steps=ecfg.max_episode_steps)

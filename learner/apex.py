@@ -1,23 +1,22 @@
-"""Ape-X learner (``zenrl learner``): samples from the replay service through a prefetcher
+"""Ape-X learner (``zenrl learner`` with ``algo: apex``): samples from the replay service through a prefetcher
 (several requests in flight), trains (:mod:`zenrl.learner.dqn`), sends priorities back from a
-background thread, broadcasts weights every ``publish_every_updates`` updates at low Zenoh
+watched background thread, broadcasts weights every ``publish_every_updates`` updates at low Zenoh
 priority (and answers ``learner/weights`` queries with the latest). Stats, metrics, checkpoints
-and the stop are the role loop's (:class:`~zenrl.learner.base.LearnerBase`). A3C's learner is
-:mod:`zenrl.learner.a3c`.
+and the stop are the role loop's, the checkpoint files the base's
+(:class:`~zenrl.learner.base.LearnerBase`); its checkpoint schema is
+:class:`~zenrl.common.checkpoints.ApexTrainingState`. A3C's learner is :mod:`zenrl.learner.a3c`;
+the process entry point that picks one is :mod:`zenrl.processes`.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from zenrl.common import protocol as P
-from zenrl.common.algorithms import algorithm
+from zenrl.common.checkpoints import ApexTrainingState
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import RateMeter
@@ -25,18 +24,17 @@ from zenrl.common.networks import arch_fingerprint, params_to_arrays
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
-from zenrl.learner.base import LearnerBase, check_resume_compatible
-from zenrl.learner.checkpoint import load_latest, save_checkpoint
+from zenrl.learner.base import LearnerBase
 from zenrl.learner.dqn import DQNLearner
 from zenrl.learner.sender import BackgroundSender
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 1
 
-
-class ApexLearnerService(LearnerBase):
+class ApexLearner(LearnerBase):
     """The Ape-X DQN learner as a :class:`~zenrl.common.roles.Worker`."""
+
+    schema = ApexTrainingState
 
     def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
         super().__init__(cfg, node, run_id, learner_id)
@@ -46,7 +44,7 @@ class ApexLearnerService(LearnerBase):
         self.transitions_consumed = 0
         self._latest_weights: bytes | None = None
         if self.wants_resume(resume):
-            self._restore()
+            self.restore()
         self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
 
     @property
@@ -54,21 +52,18 @@ class ApexLearnerService(LearnerBase):
         return self.dqn.updates
 
     # -- state -------------------------------------------------------------------------------
-    def training_state(self) -> dict[str, Any]:
-        return {"format": CHECKPOINT_FORMAT, "algo": "apex", "arch": self.arch, "version": self.version,
-                "transitions_consumed": self.transitions_consumed, "learner": self.dqn.state_dict(),
-                "torch_rng": torch.get_rng_state(), "config": self.cfg.model_dump(mode="json"),
-                "saved_at": time.time()}
+    def training_state(self) -> ApexTrainingState:
+        return ApexTrainingState(**self.base_fields(self.version), learner=self.dqn.state_dict(),
+                                 transitions_consumed=self.transitions_consumed)
 
-    def _restore(self) -> None:
-        state, path = load_latest(self.ckpt_dir)
-        check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
-        self.dqn.load_state_dict(state["learner"])
+    def load_training_state(self, state: ApexTrainingState) -> None:  # type: ignore[override]
+        self.dqn.load_state_dict(state.learner)
         # versions published after that checkpoint are above it: continue above the high-water mark
-        self.version = self.versions.resume_version(int(state["version"]))
-        self.transitions_consumed = int(state["transitions_consumed"])
-        torch.set_rng_state(state["torch_rng"])
-        log.info("resumed from %s: %d updates, weights version %d", path, self.dqn.updates, self.version)
+        self.version = self.versions.resume_version(state.version)
+        self.transitions_consumed = int(state.transitions_consumed)
+
+    def current_version(self) -> int:
+        return self.version
 
     def save(self) -> Path | None:
         """Checkpoint, unless the parameters are non-finite (then roll back instead)."""
@@ -77,22 +72,19 @@ class ApexLearnerService(LearnerBase):
             log.error("parameters are non-finite: no checkpoint written")
             self.rollback()
             return None
-        p = save_checkpoint(self.ckpt_dir, self.training_state(), self.dqn.updates, self.cfg.learner.keep_checkpoints)
-        log.info("checkpoint %s", p)
-        return p
+        return self.write_checkpoint()
 
     def rollback(self) -> None:
         """Back to the newest readable checkpoint (never one of non-finite parameters: none is
         written); without one, the optimizer state is reset and training goes on."""
         try:
-            state, path = load_latest(self.ckpt_dir)
-            check_resume_compatible(state["config"], self.cfg, state["arch"], self.arch)
+            state, path = self.read_latest()
         except CheckpointError as e:
             log.error("%d updates in a row skipped or parameters non-finite, and no checkpoint to roll back to "
                       "(%s); resetting the optimizer state", self.dqn.guard.in_a_row, e)
             self.dqn.opt.state.clear()
         else:
-            self.dqn.load_state_dict(state["learner"])
+            self.dqn.load_state_dict(state.learner)
             log.error("rolled back to %s (update %d) after %d skipped updates in a row", path, self.dqn.updates,
                       self.dqn.guard.in_a_row)
         self.dqn.guard.rolled_back()
@@ -115,16 +107,17 @@ class ApexLearnerService(LearnerBase):
 
     # -- the role loop's Worker ---------------------------------------------------------------
     def start(self, node: Node, sup: Supervisor | None = None) -> None:
+        """Publishers, the weights queryable, the first weights; the sender's and the
+        prefetcher's threads watched by ``sup``."""
         cfg = self.cfg.learner
-        self._sender = BackgroundSender(linger_s=cfg.send_linger_s, max_message_bytes=self.cfg.transport.max_message_bytes)
+        self._sender = BackgroundSender(linger_s=cfg.send_linger_s, sup=sup)
         self._w_pub = node.publisher(self.keys.weights, low_priority=True)
-        self._prio_pub = node.publisher(self.keys.priorities)
         node.queryable(self.keys.weights_query, lambda _req: self._latest_weights)
         self._latest_weights = self._encode_weights()
         self._w_pub.put(self._latest_weights)
         self._pf = SamplePrefetcher(self.client, cfg.batch_size, self.dqn.beta, cfg.requests_in_flight,
                                     prepare=lambda s: self.dqn.batch_to_tensors(s.data, s.weights),
-                                    batches_per_request=cfg.batches_per_request, seed=self.cfg.seed).start()
+                                    batches_per_request=cfg.batches_per_request, seed=self.cfg.seed).start(sup)
         self._upd_rate, self._tr_rate = RateMeter(), RateMeter()
         self._acc: dict[str, float] = {}
         self._n_acc = 0
@@ -142,7 +135,7 @@ class ApexLearnerService(LearnerBase):
             if self.dqn.guard.rollback_due:
                 self.rollback()
             return False
-        self._sender.send_priorities(self._prio_pub, s.keys, prios)
+        self._sender.send_priorities(self.client.update_priorities, s.keys, prios)
         self.transitions_consumed += len(prios)
         self._upd_rate.add(1)
         self._tr_rate.add(len(prios))
@@ -182,10 +175,3 @@ class ApexLearnerService(LearnerBase):
         self._pf.stop()
         self._sender.close()
 
-
-def main(cfg: RunConfig, run_id: str, stop: threading.Event, resume: str = "never") -> None:
-    """Entry point of ``zenrl learner``: the configured algorithm's learner in the role loop.
-    ``resume``: "never", "require" (newest valid checkpoint, an error if none) or "auto" (resume
-    if a checkpoint exists)."""
-    with Node.from_config(cfg.transport) as node:
-        algorithm(cfg.algo).learner_class()(cfg, node, run_id, resume).run(stop)
