@@ -46,9 +46,11 @@ log = logging.getLogger(__name__)
 class ReplayService:
     """The replay's wiring: builds the ingest, journal and sampler around one lock (shared by the
     ingest thread and the Zenoh callbacks), declares what they listen to and reports their
-    stats. ``node`` may be None to use :meth:`ingest` in process (tests, benchmarks)."""
+    stats. ``node`` may be None to use :meth:`ingest` in process (tests, benchmarks). ``stop``:
+    the role's stop event, which ends :meth:`step`'s idle wait at once (a prompt shutdown)."""
 
-    def __init__(self, cfg: RunConfig, node: Node | None, run_id: str, service_id: str = "replay") -> None:
+    def __init__(self, cfg: RunConfig, node: Node | None, run_id: str, service_id: str = "replay",
+                 stop: threading.Event | None = None) -> None:
         self.cfg = cfg
         self.rcfg = rcfg = cfg.replay
         self.node = node
@@ -68,6 +70,7 @@ class ReplayService:
         self.restored_items = self.journal.restore(self.ingestor, self.max_bytes) if self.journal is not None else 0
         #: set by close(): the ingest thread drains the queue and ends
         self._stop = threading.Event()
+        self._role_stop = stop or self._stop
         self._tx_sub: Any = None
         self._ingest_thread: WatchedThread | None = None
         self._quarantine_tokens: dict[str, Any] = {}
@@ -133,7 +136,7 @@ class ReplayService:
             with self._lock:
                 self.journal.maybe_flush()
         self.update_quarantine()
-        self._stop.wait(timeout_s)
+        self._role_stop.wait(timeout_s)
         return False
 
     def done(self) -> bool:
@@ -229,5 +232,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "
     """Entry point of ``zenrl replay``: build, run in the role loop until ``stop``, close the
     session. Raises :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
     with Node.from_config(cfg.transport) as node:
-        svc = ReplayService(cfg, node, run_id, service_id)
-        RoleLoop(node, svc.keys, "replay", svc.id, Cadence(cfg.replay.stats_interval_s)).run(svc, stop)
+        svc = ReplayService(cfg, node, run_id, service_id, stop)
+        # idle waits no longer than the stats interval, so that a short one is kept
+        cadence = Cadence(cfg.replay.stats_interval_s, idle_s=min(0.5, cfg.replay.stats_interval_s))
+        RoleLoop(node, svc.keys, "replay", svc.id, cadence).run(svc, stop)
