@@ -35,10 +35,9 @@ from zenrl.common.errors import TransportError
 from zenrl.common.roles import Cadence, RoleLoop, Supervisor, WatchedThread
 from zenrl.common.transport import Node
 from zenrl.replay.checks import ChunkChecker
-from zenrl.replay.ingest import TOP_SOURCES, Ingest, source_of  # noqa: F401 - part of this module's API
+from zenrl.replay.ingest import Ingest
 from zenrl.replay.journal import Journal
 from zenrl.replay.sampling import Sampler
-from zenrl.replay.store import POLICY_VERSION_FIELD  # noqa: F401 - part of this module's API
 
 log = logging.getLogger(__name__)
 

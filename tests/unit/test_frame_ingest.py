@@ -8,7 +8,8 @@ import pytest
 from zenrl.actor.nstep import NStepBlocks
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
-from zenrl.replay.service import POLICY_VERSION_FIELD, ReplayService
+from zenrl.replay.service import ReplayService
+from zenrl.replay.store import POLICY_VERSION_FIELD
 
 
 def _stream(k, steps, seed=0, E=2, n=3):
