@@ -32,8 +32,6 @@ class Journal(ReplayLog):
         super().__init__(directory, segment_items, flush_interval_s)
         self.snapshot_interval_s = snapshot_interval_s
         self._last_snapshot = time.monotonic()
-        #: items the replay held after :meth:`restore`
-        self.restored_items = 0
 
     def restore(self, ingest: Any, max_bytes: int) -> int:
         """Insert every record of the log through ``ingest.insert_logged`` (an
@@ -53,7 +51,6 @@ class Journal(ReplayLog):
         snap = self.load_priorities()
         if snap is not None:
             buf.update_priorities(*snap)
-        self.restored_items = buf.size
         log.info("replay restored %d items (keys up to %d) from %d log records", buf.size, buf.inserts_total - 1, records)
         return buf.size
 
