@@ -138,7 +138,7 @@ def ingest_round(durable: bool, payloads: list[bytes], log_dir: Path, duration_s
     if durable:
         res.update({"log_bytes_written": svc.journal.bytes_written, "durable_through": svc.journal.durable_through})
         t = time.perf_counter()
-        svc.shutdown()  # final snapshot + flush: outside the window
+        svc.close()  # final snapshot + flush: outside the window
         res["shutdown_s"] = time.perf_counter() - t
     return res
 

@@ -23,25 +23,16 @@ from threadpoolctl import threadpool_limits
 from torch import nn
 
 from zenrl.common.config import NetworkConfig
-from zenrl.common.specs import ArraySpec
+from zenrl.common.specs import ArraySpec, obs_fields
 
 
 # --------------------------------------------------------------------------------------------
 # Spaces -> specs
 # --------------------------------------------------------------------------------------------
 def obs_spec(space: gym.Space, prefix: str = "obs") -> dict[str, ArraySpec]:
-    """Flat spec of one observation: ``{"obs": ...}`` or ``{"obs/<key>": ...}``."""
-    if isinstance(space, gym.spaces.Dict):
-        out: dict[str, ArraySpec] = {}
-        for k, sub in space.spaces.items():
-            out.update(obs_spec(sub, f"{prefix}/{k}"))
-        return out
-    if isinstance(space, gym.spaces.Box):
-        dtype = "uint8" if space.dtype == np.uint8 else "float32"
-        return {prefix: ArraySpec(tuple(space.shape), dtype)}
-    if isinstance(space, gym.spaces.Discrete):
-        return {prefix: ArraySpec((), "int64")}
-    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+    """Flat spec of one observation: ``{"obs": ...}`` or ``{"obs/<key>": ...}`` (see
+    :func:`zenrl.common.specs.obs_fields`)."""
+    return {k: f.spec for k, f in obs_fields(space, prefix).items()}
 
 
 def flat_obs(obs, prefix: str = "obs") -> dict[str, np.ndarray]:

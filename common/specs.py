@@ -60,6 +60,41 @@ def spec_of_batch(batch: Mapping[str, np.ndarray]) -> dict[str, ArraySpec]:
     return {k: ArraySpec(tuple(v.shape[1:]), v.dtype.name) for k, v in batch.items()}
 
 
+@dataclass(frozen=True)
+class ObsField:
+    """One flat observation field of an env, as zenrl ships and stores it: ``spec`` (shape and
+    dtype of one item) and its bounds ``low``/``high`` (float64 arrays of ``spec.shape``, +-inf
+    where unbounded)."""
+
+    spec: ArraySpec
+    low: np.ndarray
+    high: np.ndarray
+
+
+def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
+    """The flat observation fields of a gymnasium space (Box, Discrete, or a Dict of those):
+    ``{"obs": ...}`` or ``{"obs/<key>": ...}``. The one rule for the dtypes on the wire: a uint8
+    Box stays uint8 (images), any other Box is float32, a Discrete is int64. The networks' input
+    spec and the replay's checks are both built from this."""
+    import gymnasium as gym  # callers that have an env have gymnasium; this module stays importable without
+
+    if isinstance(space, gym.spaces.Dict):
+        out: dict[str, ObsField] = {}
+        for k, sub in space.spaces.items():
+            out.update(obs_fields(sub, f"{prefix}{SEP}{k}"))
+        return out
+    if isinstance(space, gym.spaces.Discrete):
+        start = int(space.start)
+        return {prefix: ObsField(ArraySpec((), "int64"), np.array(start, np.float64),
+                                 np.array(start + int(space.n) - 1, np.float64))}
+    if isinstance(space, gym.spaces.Box):
+        dtype = "uint8" if space.dtype == np.uint8 else "float32"
+        low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape).copy()
+        high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape).copy()
+        return {prefix: ObsField(ArraySpec(tuple(space.shape), dtype), low, high)}
+    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+
+
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """``{"obs": {"lidar": a, "pose": b}, "action": c}`` -> ``{"obs/lidar": a, "obs/pose": b, "action": c}``."""
     out: dict[str, Any] = {}

@@ -1,7 +1,7 @@
-"""Zenoh sessions for zenrl processes: the only place (with the role service modules) that
-imports ``zenoh``.
+"""Zenoh sessions for zenrl processes: the only module of zenrl that imports ``zenoh`` (roles
+reach the network through :class:`Node`; tests/unit/test_boundaries.py keeps it so).
 
-Facts this module is built on (see the project's notes on Zenoh 1.x):
+Facts about Zenoh 1.x this module is built on:
 
 * every zenrl process is a ``client`` of one router (a Python process can itself be the router:
   :func:`open_router`); multicast scouting is off and endpoints are explicit;
@@ -307,16 +307,27 @@ class Node:
         self.session.get(key, zenoh.handlers.Callback(cb, on_drop, indirect=False), payload=payload, timeout=timeout_s)
 
     def token(self, key: str) -> Any:
-        """Declare a liveliness token (undeclared on close, or by :meth:`withdraw`)."""
-        tok = self.session.liveliness().declare_token(key)
+        """Declare a liveliness token (undeclared on close, or by :meth:`withdraw`). Raises
+        :class:`TransportError` when the session cannot declare it (e.g. it is closed)."""
+        try:
+            tok = self.session.liveliness().declare_token(key)
+        except zenoh.ZError as e:
+            raise TransportError(f"could not declare the liveliness token {key}: {e}") from e
         self._entities.append(tok)
         return tok
 
-    def withdraw(self, entity: Any) -> None:
-        """Undeclare a token (or subscriber, queryable) declared through this node, now."""
+    def withdraw(self, entity: Any) -> bool:
+        """Undeclare a token (or subscriber, queryable) declared through this node, now. Never
+        raises: when the session is already gone (router down, closing) the failure is logged
+        and False returned, so that a caller that is stopping goes on stopping."""
         if entity in self._entities:
             self._entities.remove(entity)
-        entity.undeclare()
+        try:
+            entity.undeclare()
+        except zenoh.ZError as e:
+            log.debug("undeclare failed: %s", e)
+            return False
+        return True
 
     def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens alive now that match ``key``."""

@@ -20,6 +20,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from zenrl.common.specs import obs_fields
+
 #: Fields every Ape-X chunk carries besides the observations (dtype of one item, shape ()).
 SCALAR_FIELDS = {"action": "int64", "reward": "float32", "n": "uint8", "terminated": "bool"}
 #: Fields an Ape-X chunk may carry besides those (shape ()).
@@ -65,27 +67,17 @@ class Rejection:
 
 def obs_rules_from_space(space: Any, prefix: str = "obs") -> dict[str, ObsRule]:
     """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those),
-    with the dtypes zenrl ships them in (uint8 Box stays uint8, other Box float32, Discrete int64)."""
-    import gymnasium as gym  # the replay's callers have it; this module stays importable without
-
-    if isinstance(space, gym.spaces.Dict):
-        out: dict[str, ObsRule] = {}
-        for k, sub in space.spaces.items():
-            out.update(obs_rules_from_space(sub, f"{prefix}/{k}"))
-        return out
-    if isinstance(space, gym.spaces.Discrete):
-        start = int(space.start)
-        return {prefix: ObsRule("int64", (), np.array(start, np.float64), np.array(start + int(space.n) - 1, np.float64))}
-    if isinstance(space, gym.spaces.Box):
-        dtype = "uint8" if space.dtype == np.uint8 else "float32"
-        low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape)
-        high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape)
-        if dtype == "uint8" and low.min() <= 0 and high.max() >= 255 and (low <= 0).all() and (high >= 255).all():
-            return {prefix: ObsRule(dtype, tuple(space.shape))}
-        if not (np.isfinite(low).any() or np.isfinite(high).any()):
-            return {prefix: ObsRule(dtype, tuple(space.shape))}
-        return {prefix: ObsRule(dtype, tuple(space.shape), low.copy(), high.copy())}
-    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+    from :func:`zenrl.common.specs.obs_fields` (the dtypes zenrl ships them in)."""
+    out: dict[str, ObsRule] = {}
+    for name, f in obs_fields(space, prefix).items():
+        dtype, shape, low, high = f.spec.dtype, f.spec.shape, f.low, f.high
+        if dtype == "uint8" and (low <= 0).all() and (high >= 255).all():
+            out[name] = ObsRule(dtype, shape)  # the dtype's own range is the bound
+        elif not (np.isfinite(low).any() or np.isfinite(high).any()):
+            out[name] = ObsRule(dtype, shape)
+        else:
+            out[name] = ObsRule(dtype, shape, low, high)
+    return out
 
 
 class ChunkChecker:

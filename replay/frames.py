@@ -43,6 +43,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from zenrl.common.errors import SpecMismatch
+from zenrl.common.protocol import frame_table
 from zenrl.common.specs import ArraySpec, Spec, spec_nbytes
 from zenrl.replay.buffer import InMemoryReplay, SampleBatch, _check_priorities
 
@@ -52,11 +53,6 @@ logger = logging.getLogger(__name__)
 GKEY_PREFIX = "frame_keys/"
 #: Chunks remembered per actor for references into earlier chunks.
 MAX_HISTORY = 256
-
-
-def table_of(field: str) -> str:
-    """Frame table a reference field reads: ``next_obs/X`` and ``obs/X`` both read ``obs/X``."""
-    return field[len("next_"):] if field.startswith("next_") else field
 
 
 @dataclass
@@ -92,7 +88,7 @@ class FrameReplay:
         frame_spec: ``{table: ArraySpec(frame_shape, dtype)}`` one frame of each table.
         ref_stack: ``{field: k}`` per frame field: ``0`` = one frame (ids ``int64[B]``),
             ``k >= 1`` = a stack of k frames (ids ``int64[B, k]``); each field reads table
-            :func:`table_of` (field).
+            :func:`~zenrl.common.protocol.frame_table` (field).
         capacity: most transitions stored.
         frames_per_item: frame ring size per transition slot (``frame_capacity = ceil(capacity
             * frames_per_item)``); an actor sends about ``1 + 1 / episode length`` frames per
@@ -113,8 +109,8 @@ class FrameReplay:
         self._frame_spec = {k: v for k, v in frame_spec.items()}
         self._ref_stack: dict[str, int] = {}
         for f, k in ref_stack.items():
-            if table_of(f) not in self._frame_spec:
-                raise ValueError(f"frame field {f!r} reads table {table_of(f)!r}, which is not in frame_spec")
+            if frame_table(f) not in self._frame_spec:
+                raise ValueError(f"frame field {f!r} reads table {frame_table(f)!r}, which is not in frame_spec")
             if isinstance(k, bool) or not isinstance(k, int) or k < 0:
                 raise ValueError(f"ref_stack[{f!r}] must be an int >= 0, got {k!r}")
             self._ref_stack[f] = k
@@ -183,7 +179,7 @@ class FrameReplay:
         """Spec of a sampled item (frame fields as the learner sees them)."""
         out = {k: v for k, v in self._inner.spec.items() if not k.startswith(GKEY_PREFIX)}
         for f, k in self._ref_stack.items():
-            s = self._frame_spec[table_of(f)]
+            s = self._frame_spec[frame_table(f)]
             out[f] = ArraySpec((k, *s.shape) if k else s.shape, s.dtype)
         return out
 
@@ -439,7 +435,7 @@ class FrameReplay:
         b = len(s)
         cap = self._fcap
         for f, k in self._ref_stack.items():
-            ring = self._frames[table_of(f)]
+            ring = self._frames[frame_table(f)]
             slots = s.data[GKEY_PREFIX + f].reshape(-1) % cap
             imgs = ring.take(slots, axis=0, mode="clip")
             data[f] = imgs.reshape((b, k, *ring.shape[1:]) if k else (b, *ring.shape[1:]))

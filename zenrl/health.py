@@ -8,7 +8,9 @@ The router, run id and client config come from the same environment as the roles
 (``ZENRL_ROUTER``, ``ZENRL__RUN_ID``, ``ZENRL__TRANSPORT__CLIENT_CONFIG``; ``--config`` for a
 file). Healthy (exit 0) when the router holds the process's liveliness token
 (``zenrl/<run>/alive/<role>/<id>``) and, with ``--stats-within-s``, the process published its
-stats within that time (its main loop is not stuck). Otherwise exit 1 with a one-line reason.
+stats within that time (its main loop is not stuck) and those stats name no stalled thread (the
+role loop's ``stalled``: a thread such as the replay's ingest that has finished no unit of work
+for a while although its input waits). Otherwise exit 1 with a one-line reason.
 
 ``--unreachable-ok`` is for liveness probes: when the router itself cannot be reached the check
 passes, because restarting this process would not bring the router back (readiness probes
@@ -54,7 +56,7 @@ def check(role: str, ident: str | None, prefix: str | None, stats_within_s: floa
         out["reason"] = f"router unreachable: {e}"
         return out
     with node:
-        fresh: set[str] = set()
+        latest: dict[str, dict] = {}
         lock = threading.Lock()
 
         def on_stats(_key: str, payload: bytes) -> None:
@@ -64,31 +66,44 @@ def check(role: str, ident: str | None, prefix: str | None, stats_within_s: floa
                 return
             if m.role == role:
                 with lock:
-                    fresh.add(m.id)
+                    latest[m.id] = m.values
 
         if stats_within_s:
             node.subscribe(k.stats_all, on_stats)
         ids = [k.parse_alive(x)[1] for x in node.alive_now(k.alive_role(role), min(connect_timeout_s, 2.0))]
         ids = [i for i in ids if (ident is None or i == ident) and (prefix is None or i.startswith(prefix))]
         out["ids"] = sorted(ids)
-        want = ident or (prefix + "*" if prefix else "*")
-        if not ids:
-            out["reason"] = f"no liveliness token {k.prefix}/alive/{role}/{want} at the router"
-            return out
-        if stats_within_s:
+        if ids and stats_within_s:
             deadline = time.monotonic() + stats_within_s
             while time.monotonic() < deadline:
                 with lock:
-                    if fresh & set(ids):
+                    if set(latest) & set(ids):
                         break
                 time.sleep(0.05)
-            with lock:
-                if not fresh & set(ids):
-                    out["reason"] = f"{role} {want} holds its token but published no stats within {stats_within_s} s"
-                    return out
-        out["ok"] = True
-        out["reason"] = "alive" + (" and publishing stats" if stats_within_s else "")
+        with lock:
+            seen = dict(latest)
+        want = ident or (prefix + "*" if prefix else "*")
+        out["ok"], out["reason"] = judge(role, f"{k.prefix}/alive/{role}/{want}", want, ids, seen, stats_within_s)
         return out
+
+
+def judge(role: str, token: str, want: str, ids: list[str], stats: dict[str, dict],
+          stats_within_s: float | None) -> tuple[bool, str]:
+    """The verdict from what was seen: ``ids`` holding the liveliness ``token`` and, per id, the
+    values of the newest stats it published while we listened (``stats_within_s`` None: stats
+    are not asked for). Returns ``(healthy, one-line reason)``."""
+    if not ids:
+        return False, f"no liveliness token {token} at the router"
+    if not stats_within_s:
+        return True, "alive"
+    seen = {i: stats[i] for i in sorted(ids) if i in stats}
+    if not seen:
+        return False, f"{role} {want} holds its token but published no stats within {stats_within_s} s"
+    stalled = {i: v.get("stalled") for i, v in seen.items() if v.get("stalled")}
+    if stalled:
+        i, names = next(iter(stalled.items()))
+        return False, f"{role} {i} is alive but stalled: thread {names} makes no progress while its input waits"
+    return True, "alive and publishing stats"
 
 
 def build_parser() -> argparse.ArgumentParser:

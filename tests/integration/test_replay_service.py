@@ -83,3 +83,38 @@ def test_ingest_sample_update_and_reject(router, run_id, procs):
         assert client.sample(64, 0.4).keys.shape == (64,)
         assert s["size"] == 2000
     assert "rejected message" in procs.log("replay")
+
+
+def _honest(seq, b=16):
+    data = {"obs": np.zeros((b, 4), np.float32), "action": np.ones(b, np.int64), "reward": np.ones(b, np.float32),
+            "next_obs": np.zeros((b, 4), np.float32), "terminated": np.zeros(b, bool), "n": np.ones(b, np.uint8)}
+    return P.TransitionBatch("a0", 1, seq, data).encode()
+
+
+def test_a_message_that_raises_costs_only_itself(router, run_id, procs):
+    """Messages the protocol admits but that raise something else between receipt and insert
+    (an int64 column for a policy version of 2**64-1; a shape mixing a zero with dimensions whose
+    product overflows) are counted as rejected; the ingest thread goes on with the next honest
+    chunk, the replay reports no stalled thread and its health probe stays green."""
+    from tests.integration.test_health import _health
+
+    keys = P.Keys(run_id)
+    procs.zenrl("replay", ["replay", "--router", router, "--run-id", run_id, "--set", "replay.stats_interval_s=0.3",
+                           "--set", "replay.min_size=1"])
+    with Node(router, 10.0) as node:
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 0.5), 60, "the replay's liveliness token")
+        stats = replay_stats_reader(node, keys)
+        evil, honest = node.publisher(keys.transitions("evil")), node.publisher(keys.transitions("a0"))
+        huge_version = msgpack.packb({**msgpack.unpackb(_honest(0)), "policy_version": 2**64 - 1})
+        m = msgpack.unpackb(_honest(0))
+        m["data"]["obs"] = {"dtype": "float32", "shape": [2**32, 2**32, 0], "data": b""}
+        evil.put(huge_version)
+        evil.put(msgpack.packb(m))
+        honest.put(_honest(1))
+        s = wait_until(lambda: (v := stats()) and v["inserted_total"] == 16 and v["rejected_total"] == 2 and v, 30,
+                       "the honest chunk inserted after two that raise")
+        assert s["rejected_from/evil"] == 2 and s["stalled"] == "" and s["errors_total"] == 0, s
+        honest.put(_honest(2))
+        wait_until(lambda: (v := stats()) and v["inserted_total"] == 32, 30, "the next honest chunk inserted too")
+        rc, out = _health(router, run_id, "--role", "replay", "--id", "replay", "--stats-within-s", "5")
+        assert rc == 0, out

@@ -28,7 +28,7 @@ def test_restore_gives_back_items_keys_and_priorities(tmp_path):
         assert a.ingest(_payload(i)) == 16
     keys = np.arange(0, 320, 7, dtype=np.int64)
     a.buffer.update_priorities(keys, np.full(keys.size, 50.0))
-    a.shutdown()  # SIGTERM path: flush + snapshot
+    a.close()  # SIGTERM path: flush + snapshot
 
     b = _service(tmp_path)
     assert b.buffer.size == 320 and b.buffer.inserts_total == 320
@@ -59,7 +59,7 @@ def test_crash_keeps_everything_up_to_the_last_flush_and_skips_a_torn_tail(tmp_p
     assert seg.stat().st_size < size - 100  # the torn bytes were cut off
     # the torn bytes were cut off, so appending after restore yields a clean log
     b.ingest(_payload(50))
-    b.shutdown()
+    b.close()
     c = _service(tmp_path)
     assert c.buffer.size == 13 * 16 and c.journal.torn_records == 0
 
@@ -74,7 +74,7 @@ def test_disk_use_is_bounded_over_many_ring_wraps(tmp_path):
     bound = ((200 + 2 * 48) // 16 + 2) * record + 64_000  # ring + two segments + the snapshot
     assert peak <= bound, (peak, bound)
     assert len(a.journal.segments()) <= 200 // 48 + 3
-    a.shutdown()
+    a.close()
     b = _service(tmp_path, capacity=200, segment_items=48)
     assert b.buffer.size == 200 and b.buffer.inserts_total == 3200
 

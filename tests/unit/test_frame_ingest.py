@@ -8,7 +8,8 @@ import pytest
 from zenrl.actor.nstep import NStepBlocks
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
-from zenrl.replay.service import POLICY_VERSION_FIELD, ReplayService
+from zenrl.replay.service import ReplayService
+from zenrl.replay.store import POLICY_VERSION_FIELD
 
 
 def _stream(k, steps, seed=0, E=2, n=3):
@@ -89,7 +90,7 @@ def test_durable_restore_of_frame_chunks(tmp_path):
         a.ingest(_framed_payload(bf, seq))
         for r in range(len(bp)):
             plain_by_key[first + r] = {f: v[r] for f, v in bp.data.items()}
-    a.shutdown()
+    a.close()
     b = _service(tmp_path)
     assert b.buffer.inserts_total == a.buffer.inserts_total and b.buffer.size == a.buffer.size
     _check_samples(b, plain_by_key)
@@ -185,7 +186,7 @@ def test_frame_chunks_queued_together_store_what_one_at_a_time_stores(tmp_path):
     sampled = {int(k): s.data["obs"][i] for i, k in enumerate(s.keys)}
     for key, img in sampled.items():  # a stack sampled from the batched store is the one-at-a-time one
         np.testing.assert_array_equal(img, _obs_of(one, key))
-    many.shutdown()
+    many.close()
     restored = _service(tmp_path)
     assert restored.buffer.inserts_total == many.buffer.inserts_total and restored.buffer.size == many.buffer.size
     for key, img in sampled.items():

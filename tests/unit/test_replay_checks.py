@@ -90,6 +90,18 @@ def test_obs_bounds_check_off_keeps_the_other_checks():
     assert chk.check(d, p).reason == "action_range"
 
 
+def test_the_replay_checks_the_fields_the_networks_take():
+    """The networks' input spec and the replay's rules come from one reading of the space
+    (common/specs.obs_fields): same fields, dtypes and shapes for every kind of space."""
+    from zenrl.common.networks import obs_spec
+
+    for space in (gym.spaces.Box(0, 255, (84, 84, 4), np.uint8), gym.spaces.Box(-1, 1, (4,), np.float64),
+                  gym.spaces.Discrete(5, start=1),
+                  gym.spaces.Dict({"lidar": gym.spaces.Box(0, 10, (3,), np.float32), "cell": gym.spaces.Discrete(9)})):
+        spec, rules = obs_spec(space), obs_rules_from_space(space)
+        assert {k: (s.dtype, s.shape) for k, s in spec.items()} == {k: (r.dtype, r.shape) for k, r in rules.items()}
+
+
 def test_rules_for_images_discrete_and_dicts():
     img = obs_rules_from_space(gym.spaces.Box(0, 255, (84, 84, 4), np.uint8))
     assert img["obs"].dtype == "uint8" and img["obs"].low is None  # the dtype already bounds it

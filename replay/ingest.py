@@ -1,0 +1,299 @@
+"""The replay's ingest: from a ``transitions/<actor>`` message to items in the store.
+
+Zenoh's callback (:meth:`Ingest.on_transitions`) only drops a quarantined source's chunk unread
+or puts the raw bytes in a bounded queue (never stalling the sender past Zenoh's 5 s BLOCK fuse:
+a chunk that cannot be queued within ``replay.drop_after_s`` is dropped and counted). The ingest
+thread runs :meth:`Ingest.unit` over and over: take what is queued (up to
+``replay.ingest_batch_chunks`` chunks) and :meth:`Ingest.ingest_many` it:
+
+1. decode each message (:class:`~zenrl.common.protocol.TransitionBatch`: form, sizes, finiteness);
+2. the first chunk that passes the checks allocates the storage (:func:`zenrl.replay.store.allocate`);
+3. each chunk must fit the storage's layout (``spec``), then mean what the env allows
+   (:mod:`zenrl.replay.checks`, with ``replay.check_semantics``);
+4. the good ones are inserted together and each is appended to the journal.
+
+A bad chunk is rejected alone and counted by reason (``rejected_<reason>``) and by source; a
+source that keeps sending bad chunks is quarantined. Any other exception while one chunk is
+handled is caught and counted as ``rejected_internal`` and ``rejected_internal/<Type>``, and the
+next chunk is handled: no message can end the ingest thread.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import ProtocolError, SpecMismatch
+from zenrl.common.metrics import RateMeter, RejectCounter
+from zenrl.replay.checks import ChunkChecker, Quarantine
+from zenrl.replay.store import Chunk, Store, allocate, check_one
+
+log = logging.getLogger(__name__)
+
+#: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
+TOP_SOURCES = 20
+#: Sources whose rejections are counted by name (the totals count them all).
+MAX_SOURCES = 10_000
+
+
+def source_of(key: str) -> str:
+    """The sender a ``transitions/<actor>`` key names (its last segment)."""
+    return key.rsplit("/", 1)[-1]
+
+
+class Ingest:
+    """Queue, checks and insert of transitions chunks. ``lock`` guards the store (shared with
+    sampling and the journal); ``journal`` (or None) gets each inserted chunk."""
+
+    def __init__(self, rcfg: Any, seed: int, max_bytes: int, checker: ChunkChecker | None, lock: threading.Lock,
+                 journal: Any | None = None) -> None:
+        self.rcfg, self.seed, self.max_bytes = rcfg, seed, max_bytes
+        self.checker = checker
+        self.lock = lock
+        self.journal = journal
+        self.store: Store | None = None
+        self.queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=rcfg.queue_size)
+        #: set first on shutdown: the callback then returns at once (never waits on a queue that
+        #: is about to stop being drained)
+        self.closing = threading.Event()
+        self.rejects = RejectCounter(log, "message")
+        self.internal_errors: collections.Counter[str] = collections.Counter()
+        self.rejected_by_source: collections.Counter[str] = collections.Counter()
+        self.quarantine = Quarantine(rcfg.quarantine_rejections, rcfg.quarantine_window_s, rcfg.quarantine_s)
+        #: guards the per-source counts and the quarantine (rejections come from the ingest thread,
+        #: stats and quarantine expiry from the role loop); never held while taking ``lock``
+        self.sources_lock = threading.Lock()
+        self.inserted = RateMeter()
+        self.dropped_queue_full = 0
+        self.dropped_stopping = 0
+        self.dropped_quarantined = 0
+
+    # -- the queue ------------------------------------------------------------------------------
+    def on_transitions(self, key: str, payload: bytes) -> None:
+        """Zenoh's callback for ``transitions/*``: enqueue, or drop and count."""
+        if self.quarantine.active and self.quarantine.drop(source_of(key)):
+            self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
+            return
+        # wait for queue space in short slices so that a shutdown is noticed at once, not after
+        # drop_after_s per chunk (a full queue's consumer may be the one stopping)
+        deadline = time.monotonic() + self.rcfg.drop_after_s
+        while not self.closing.is_set():
+            try:
+                self.queue.put((key, payload), timeout=min(0.05, max(0.0, deadline - time.monotonic())))
+                return
+            except queue.Full:
+                if time.monotonic() >= deadline:
+                    self.dropped_queue_full += 1
+                    self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+                    return
+        self.dropped_stopping += 1  # arrived while stopping: never inserted, so never acknowledged as such
+
+    def unit(self) -> int:
+        """The ingest thread's unit of work: wait briefly for a chunk, then ingest it together with
+        what else is queued (one insert and tree update for many chunks). Returns items inserted."""
+        try:
+            first = self.queue.get(timeout=0.2)
+        except queue.Empty:
+            return 0
+        return self._ingest_queued(first)
+
+    def pending(self) -> int:
+        """Chunks waiting in the queue."""
+        return self.queue.qsize()
+
+    def drain(self) -> None:
+        """On stop: insert (and log) what was queued before the subscriber went, not lose it."""
+        while True:
+            try:
+                first = self.queue.get_nowait()
+            except queue.Empty:
+                return
+            self._ingest_queued(first)
+
+    def _ingest_queued(self, first: tuple[str, bytes]) -> int:
+        batch = [first]
+        while len(batch) < self.rcfg.ingest_batch_chunks:
+            try:
+                batch.append(self.queue.get_nowait())
+            except queue.Empty:
+                break
+        return self.ingest_many([(payload, key) for key, payload in batch])
+
+    # -- decode, check, insert -------------------------------------------------------------------
+    def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
+        """Decode, check and insert each ``(payload, source)``; the good ones as one batch. A bad
+        chunk is rejected and counted alone. Returns the items inserted."""
+        chunks: list[Chunk] = []
+        for payload, source in items:
+            c = self._guard(source, self._decode, payload, source)
+            if c is not None:
+                chunks.append(c)
+        if not chunks:
+            return 0
+        with self.lock:
+            if self.store is None:
+                chunks = self._allocate(chunks)
+            chunks = [c for c in chunks if self._guard(c.source, self._fits, c)]
+            if self.checker is not None and chunks:
+                chunks = self._checked(chunks)
+            n = self._insert(chunks) if chunks else 0
+        self.inserted.add(n)
+        return n
+
+    def _decode(self, payload: bytes, source: str) -> Chunk | None:
+        try:
+            msg = P.TransitionBatch.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.reject(e.reason, str(e), source)
+            return None
+        return Chunk.of(payload, msg, source)
+
+    def _allocate(self, chunks: list[Chunk]) -> list[Chunk]:
+        """Allocate the storage from the first chunk that passes the checks (caller holds the
+        lock). Returns the chunks left to insert, that one first."""
+        for i, c in enumerate(chunks):
+            if self.checker is not None and not self._guard(c.source, self._passes, c):
+                continue
+            try:
+                self.store = allocate(c, self.rcfg, self.seed, self.checker is not None)
+            except (ValueError, SpecMismatch) as e:
+                self.reject("spec", str(e), c.sender)
+                continue
+            except Exception as e:  # noqa: BLE001 - e.g. a shape too large to allocate: this chunk only
+                self._internal(e, c.source)
+                continue
+            return chunks[i:]
+        return []
+
+    def _fits(self, c: Chunk) -> bool:
+        why = self.store.fits(c)
+        if why:
+            self.reject("spec", why, c.sender)
+        return not why
+
+    def _passes(self, c: Chunk) -> bool:
+        why = check_one(self.checker, c)
+        if why is not None:
+            self.reject(why.reason, why.detail, c.sender)
+        return why is None
+
+    def _checked(self, chunks: list[Chunk]) -> list[Chunk]:
+        """The chunks that pass the semantic checks (caller holds the lock)."""
+        try:
+            verdicts = self.store.check(self.checker, chunks)
+        except Exception:  # noqa: BLE001 - find the chunk that raises: each is checked alone
+            return [c for c in chunks if self._guard(c.source, self._passes, c)]
+        ok = []
+        for c, why in zip(chunks, verdicts):
+            if why is None:
+                ok.append(c)
+            else:
+                self.reject(why.reason, why.detail, c.sender)
+        return ok
+
+    def _insert(self, chunks: list[Chunk]) -> int:
+        """Insert the chunks in order and journal each (caller holds the lock). An unexpected
+        exception from a multi-chunk insert that stored nothing is retried chunk by chunk, so
+        that it costs only the chunk that raises it."""
+        before = self.store.buffer.inserts_total
+        try:
+            results: list[Any] = self.store.insert(chunks)
+        except Exception as e:  # noqa: BLE001 - one chunk's failure must not end the ingest thread
+            if len(chunks) > 1 and self.store.buffer.inserts_total == before:
+                return sum(self._insert([c]) for c in chunks)
+            for c in chunks:
+                self._internal(e, c.source)
+            return 0
+        n = 0
+        for c, res in zip(chunks, results):
+            if isinstance(res, (SpecMismatch, ValueError)):
+                self.reject("spec", str(res), c.sender)
+                continue
+            if res.dropped:
+                self.rejects.reject("unresolved_frames", f"{res.dropped} transitions name frames this replay does "
+                                    "not hold (a lost chunk, or evicted); dropped", c.msg.actor_id)
+            if self.journal is not None:  # a failing disk is no chunk's fault: the supervisor counts it
+                first = int(res.keys[0]) if res.keys.size else self.store.buffer.inserts_total
+                self.journal.append(first, int(res.keys.size), c.payload)
+            n += int(res.keys.size)
+        if self.journal is not None:
+            self.journal.after_insert(self.store.buffer)
+        return n
+
+    def insert_logged(self, msg: P.TransitionBatch, payload: bytes, first_key: int) -> int | None:
+        """Insert one record of the journal at start-up, with the keys it had (no checks: we
+        wrote it). Returns the items inserted, None when the record does not fit (skipped)."""
+        c = Chunk.of(payload, msg)
+        try:
+            if self.store is None:
+                # a log written without the checks (or for another env) may hold other fields
+                vetted = self.checker is not None and msg.frames is None and self.checker.check_fields(msg.data) is None
+                self.store = allocate(c, self.rcfg, self.seed, vetted, first_key)
+            elif first_key != self.store.buffer.inserts_total:
+                log.warning("replay log gap: expected key %d, record starts at %d", self.store.buffer.inserts_total, first_key)
+            why = self.store.fits(c)
+            res = self.store.insert([c])[0] if not why else SpecMismatch(why)
+        except (ValueError, SpecMismatch) as e:
+            res = e
+        if isinstance(res, Exception):
+            log.warning("skipping a log record that does not fit the replay: %s", res)
+            return None
+        return int(res.keys.size)
+
+    # -- rejections -------------------------------------------------------------------------------
+    def _guard(self, source: str, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)``; an exception other than the expected rejections is counted as
+        ``internal`` against ``source`` and None returned."""
+        try:
+            return fn(*args)
+        except Exception as e:  # noqa: BLE001 - one message's failure costs that message only
+            self._internal(e, source)
+            return None
+
+    def _internal(self, e: BaseException, source: str) -> None:
+        t = type(e).__name__
+        with self.sources_lock:
+            self.internal_errors[t] += 1
+            first = self.internal_errors[t] == 1
+        self.reject("internal", f"{t}: {e}", source)
+        if first:  # the first of each type with its traceback, the rest counted
+            log.error("ingest of a chunk from %s raised %s; counted as rejected_internal, going on", source, t, exc_info=e)
+
+    def reject(self, reason: str, detail: str, source: str) -> None:
+        """Count a rejected chunk by reason and by source (the actor id in its key); a source
+        that keeps sending bad chunks is quarantined. Callers may hold the lock or not."""
+        self.rejects.reject(reason, detail, source)
+        src = source_of(source)
+        with self.sources_lock:
+            if src not in self.rejected_by_source and len(self.rejected_by_source) >= MAX_SOURCES:
+                return  # bounded memory however many ids a sender invents (the totals still count)
+            self.rejected_by_source[src] += 1
+            quarantined = self.quarantine.record(src, reason)
+        if quarantined:
+            log.warning("source %s quarantined for %.0f s: %d rejected chunks within %.0f s (last: %s)", src,
+                        self.rcfg.quarantine_s, self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, reason)
+
+    def stats_values(self) -> dict[str, Any]:
+        """``inserts_per_s``, the drop counters, ``ingest_queue``, ``rejected_<reason>`` (with
+        ``rejected_internal/<Type>``), the top ``rejected_from/<source>`` and the quarantine."""
+        v: dict[str, Any] = {
+            "inserts_per_s": self.inserted.rate(),
+            "dropped_queue_full": self.dropped_queue_full,
+            "dropped_stopping": self.dropped_stopping,
+            "ingest_queue": self.queue.qsize(),
+        }
+        v.update(self.rejects.as_values())
+        with self.sources_lock:
+            v.update({f"rejected_internal/{t}": n for t, n in self.internal_errors.items()})
+            for src, n in self.rejected_by_source.most_common(TOP_SOURCES):
+                v[f"rejected_from/{src}"] = n
+            v["quarantined"] = len(self.quarantine.active)
+            v["quarantined_sources"] = self.quarantine.describe()
+            v["quarantines_total"] = self.quarantine.total
+        v["dropped_quarantined"] = self.dropped_quarantined
+        return v

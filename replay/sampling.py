@@ -1,0 +1,101 @@
+"""The replay's answers to learners: sample replies and priority updates.
+
+* ``replay/sample`` (:class:`~zenrl.common.protocol.SampleRequest` ->
+  :class:`~zenrl.common.protocol.SampleReply`): a batch is sampled in proportion to priority when
+  the replay is ready for it (:meth:`Sampler.readiness`: at least ``replay.min_size`` items, and
+  ``replay.samples_per_insert`` not exceeded); otherwise "not ready" is answered at once with the
+  reason, never by waiting.
+* ``replay/priorities`` (:class:`~zenrl.common.protocol.PriorityUpdate`): new priorities for
+  sampled keys; keys overwritten since are ignored by the storage.
+
+Both run on Zenoh's callback threads and take the replay's lock around the storage.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any, Callable
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import ProtocolError
+from zenrl.common.metrics import RateMeter, RejectCounter
+
+log = logging.getLogger(__name__)
+
+
+class Sampler:
+    """Sampling and priority updates over the storage ``buffer()`` returns (None before the
+    first chunk). ``rejects`` counts bad requests with the replay's other rejections;
+    ``check_priorities``: refuse priority updates above ``replay.max_priority``."""
+
+    def __init__(self, rcfg: Any, seed: int, max_bytes: int, lock: threading.Lock, buffer: Callable[[], Any],
+                 rejects: RejectCounter, sample_key: str, check_priorities: bool) -> None:
+        self.rcfg, self.max_bytes, self.lock = rcfg, max_bytes, lock
+        self.buffer = buffer
+        self.rejects = rejects
+        self.sample_key = sample_key
+        self.check_priorities = check_priorities
+        self.rng = np.random.default_rng(seed + 17)
+        self.sampled = RateMeter()
+        self.sampled_items = 0
+        self.not_ready_replies = 0
+
+    def readiness(self, batch_size: int) -> str:
+        """``""`` if a batch of ``batch_size`` may be sampled now, else the reason why not
+        (caller holds the lock)."""
+        b = self.buffer()
+        size = 0 if b is None else b.size
+        if size < max(self.rcfg.min_size, 1):
+            return f"min_size {self.rcfg.min_size} > size {size}"
+        spi = self.rcfg.samples_per_insert
+        if spi is not None:
+            allowed = spi * b.inserts_total + self.rcfg.spi_tolerance
+            if self.sampled_items + batch_size > allowed:
+                return f"samples_per_insert {spi} reached ({self.sampled_items} sampled, {b.inserts_total} inserted)"
+        return ""
+
+    def on_sample(self, payload: bytes) -> bytes:
+        """The queryable's handler: a request's bytes -> the reply's bytes."""
+        try:
+            req = P.SampleRequest.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), self.sample_key)
+            return P.SampleReply(request_id=0, status="not_ready", reason=f"bad request: {e}").encode()
+        return self.reply(req).encode(self.max_bytes)
+
+    def reply(self, req: P.SampleRequest) -> P.SampleReply:
+        with self.lock:
+            why = self.readiness(req.batch_size)
+            b = self.buffer()
+            size = 0 if b is None else b.size
+            if why:
+                self.not_ready_replies += 1
+                return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size)
+            s = b.sample(req.batch_size, req.beta, self.rng)
+            self.sampled_items += req.batch_size
+        self.sampled.add(1)
+        return P.SampleReply(request_id=req.request_id, status="ok", replay_size=size,
+                             keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=s.data)
+
+    def on_priorities(self, key: str, payload: bytes) -> None:
+        """The subscriber of ``replay/priorities``."""
+        try:
+            msg = P.PriorityUpdate.decode(payload, self.max_bytes)
+        except ProtocolError as e:
+            self.rejects.reject(e.reason, str(e), key)
+            return
+        if self.check_priorities and msg.priorities.size and float(msg.priorities.max()) > self.rcfg.max_priority:
+            self.rejects.reject("priority_bound", f"priority update {float(msg.priorities.max()):.3g} exceeds "
+                                f"replay.max_priority {self.rcfg.max_priority:.3g}", key)
+            return
+        with self.lock:
+            b = self.buffer()
+            if b is not None:
+                b.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))
+
+    def stats_values(self) -> dict[str, Any]:
+        return {"sample_batches_per_s": self.sampled.rate(), "sample_batches_total": self.sampled.total,
+                "not_ready_replies": self.not_ready_replies}

@@ -1,0 +1,214 @@
+"""The replay's storage behind one interface, whatever it holds.
+
+A replay stores either full observations (:class:`PlainStore`, an
+:class:`~zenrl.replay.buffer.InMemoryReplay`) or, for image envs, transitions whose observations
+are frame ids into frame rings (:class:`FrameStore`, a :class:`~zenrl.replay.frames.FrameReplay`).
+Which one is chosen once, by :func:`allocate`, from the first chunk that is stored (or the first
+record of the log). Ingest, the journal and sampling then use only the :class:`Store` interface:
+
+* ``buffer``: the storage itself, for what both kinds share (``size``, ``capacity``,
+  ``inserts_total``, ``sample``, ``update_priorities``, ``raw_priorities``, ``start_at``, ...);
+* ``fits(chunk)``: ``""`` when a chunk's layout is the storage's, else why not (a ``spec``
+  rejection);
+* ``check(checker, chunks)``: the semantic checks (:mod:`zenrl.replay.checks`) of several chunks,
+  one :class:`~zenrl.replay.checks.Rejection` or None per chunk;
+* ``insert(chunks)``: store several chunks in order; per chunk a :class:`Stored` (its keys) or the
+  ``SpecMismatch``/``ValueError`` that refused it alone;
+* ``stats()``: the storage's own stats values.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Protocol, Sequence
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import SpecMismatch
+from zenrl.common.specs import spec_of_batch
+from zenrl.replay.buffer import InMemoryReplay
+from zenrl.replay.checks import ChunkChecker, Rejection
+from zenrl.replay.frames import FrameChunk, FrameReplay
+
+log = logging.getLogger(__name__)
+
+#: Column the service adds to every item: the weight version the actor acted with (policy lag).
+POLICY_VERSION_FIELD = "meta/policy_version"
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """One decoded ``transitions`` message on its way to the store. ``data``: the message's flat
+    fields ``{name: array[B, ...]}`` plus ``meta/policy_version`` int64[B]; ``source``: the key it
+    arrived on (its last segment names the sender) or ``""``."""
+
+    payload: bytes
+    msg: P.TransitionBatch
+    source: str
+    data: dict[str, np.ndarray]
+
+    @classmethod
+    def of(cls, payload: bytes, msg: P.TransitionBatch, source: str = "") -> "Chunk":
+        data = dict(msg.data)
+        data[POLICY_VERSION_FIELD] = np.full(msg.batch_size, msg.policy_version, np.int64)
+        return cls(payload, msg, source, data)
+
+    @property
+    def sender(self) -> str:
+        return self.source or self.msg.actor_id
+
+
+@dataclass(frozen=True)
+class Stored:
+    """What one chunk became in the store: ``keys`` int64[B'] of its stored transitions and
+    ``dropped`` transitions it lost (frame ids that did not resolve; always 0 for plain storage)."""
+
+    keys: np.ndarray
+    dropped: int = 0
+
+
+class Store(Protocol):
+    """See the module docstring."""
+
+    buffer: Any
+
+    def fits(self, c: Chunk) -> str: ...
+
+    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]: ...
+
+    def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+def check_one(checker: ChunkChecker, c: Chunk) -> Rejection | None:
+    """The semantic checks of one chunk alone, for either kind of storage."""
+    if c.msg.frames is None:
+        return checker.check(c.msg.data, c.msg.priorities)
+    return checker.check_scalars(c.msg.data, c.msg.priorities) or checker.check_frames(c.msg.frames)
+
+
+def allocate(c: Chunk, rcfg: Any, seed: int, vetted: bool, first_key: int | None = None) -> Store:
+    """The storage for a replay whose first stored chunk is ``c`` (frame mode when it carries
+    frames), sized by the replay config ``rcfg``; its keys start at ``first_key`` (a restored log)
+    or 0. ``vetted``: ``c``'s fields are known to be the env's (it passed the checks). Raises
+    ``ValueError``/``SpecMismatch`` when no storage can be built from ``c``."""
+    store: Store = FrameStore.allocate(c, rcfg, seed) if c.msg.frames is not None else PlainStore.allocate(c, rcfg, seed, vetted)
+    if first_key is not None:
+        store.buffer.start_at(first_key)
+    return store
+
+
+class PlainStore:
+    """Full observations in an :class:`InMemoryReplay`. Several chunks are checked and inserted
+    as one batch (one tree update), so their per-call costs are paid once per batch."""
+
+    def __init__(self, buffer: InMemoryReplay, vetted: bool) -> None:
+        self.buffer = buffer
+        #: the storage's fields are known to be the env's: a batch that matches them needs only
+        #: its values checked
+        self.vetted = vetted
+        self._sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in buffer.spec.items()}
+
+    @classmethod
+    def allocate(cls, c: Chunk, rcfg: Any, seed: int, vetted: bool) -> "PlainStore":
+        spec = spec_of_batch(c.data)
+        buf = InMemoryReplay(spec, capacity=rcfg.capacity, max_bytes=rcfg.max_bytes, alpha=rcfg.alpha,
+                             uniform=rcfg.uniform, seed=seed)
+        log.info("replay storage allocated: %d items x %d bytes, fields %s", buf.capacity,
+                 buf.bytes_per_item, {k: (v.shape, v.dtype) for k, v in spec.items()})
+        return cls(buf, vetted)
+
+    def fits(self, c: Chunk) -> str:
+        if c.msg.frames is not None:
+            return "a frame-mode chunk, but this replay stores full observations"
+        sig = self._sig
+        if c.data.keys() != sig.keys():
+            return f"fields {sorted(c.data)} differ from the replay's {sorted(sig)}"
+        for k, a in c.data.items():
+            shape, dt = sig[k]
+            if a.shape[1:] != shape or a.dtype != dt:
+                return f"field {k}: {a.dtype.name}{list(a.shape[1:])} differs from the replay's {dt.name}{list(shape)}"
+        return ""
+
+    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
+        """One check of the combined batch; only when it fails are the chunks checked one by one
+        to find the bad ones."""
+        data, prios = self._combine(chunks)
+        if not self.vetted:
+            data = {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD}
+        if checker.check(data, prios, fields_checked=self.vetted) is None:
+            return [None] * len(chunks)
+        return [check_one(checker, c) for c in chunks]
+
+    def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]:
+        data, prios = self._combine(chunks)
+        try:
+            keys = self.buffer.insert(data, prios)
+        except (SpecMismatch, ValueError) as e:
+            if len(chunks) == 1:
+                return [e]
+            return [r for c in chunks for r in self.insert([c])]  # a refused chunk costs only itself
+        out: list[Stored | SpecMismatch | ValueError] = []
+        off = 0
+        for c in chunks:
+            out.append(Stored(keys[off:off + c.msg.batch_size]))
+            off += c.msg.batch_size
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        return {}
+
+    def _combine(self, chunks: Sequence[Chunk]) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """One batch ``{field: array[sum B, ...]}`` and its priorities from several chunks."""
+        if len(chunks) == 1:
+            return chunks[0].data, chunks[0].msg.priorities
+        data = {k: np.concatenate([c.data[k] for c in chunks]) for k in chunks[0].data}
+        if all(c.msg.priorities is not None for c in chunks):
+            return data, np.concatenate([c.msg.priorities for c in chunks])
+        # chunks without priorities take the running max, as on their own
+        mp = np.float32(self.buffer.max_priority)
+        return data, np.concatenate([c.msg.priorities if c.msg.priorities is not None
+                                     else np.full(c.msg.batch_size, mp, np.float32) for c in chunks])
+
+
+class FrameStore:
+    """Transitions with frame ids in a :class:`FrameReplay` (each frame stored once). Chunks are
+    checked one by one and inserted with one ``insert_many``."""
+
+    def __init__(self, buffer: FrameReplay) -> None:
+        self.buffer = buffer
+
+    @classmethod
+    def allocate(cls, c: Chunk, rcfg: Any, seed: int) -> "FrameStore":
+        refs = c.msg.frame_refs()
+        batch = {k: v for k, v in c.data.items() if k not in refs}
+        ref_stack = {k: (0 if v.ndim == 1 else int(v.shape[1])) for k, v in refs.items()}
+        buf = FrameReplay(spec_of_batch(batch), spec_of_batch(c.msg.frames), ref_stack, rcfg.capacity,
+                          frames_per_item=rcfg.frames_per_item, max_bytes=rcfg.max_bytes, alpha=rcfg.alpha,
+                          uniform=rcfg.uniform, seed=seed)
+        log.info("replay storage allocated (frame mode): %d items, %d frames, %d bytes per item",
+                 buf.capacity, buf.frame_capacity, buf.bytes_per_item)
+        return cls(buf)
+
+    def fits(self, c: Chunk) -> str:
+        # the frame layout itself is checked by FrameReplay when the chunk is inserted
+        return "" if c.msg.frames is not None else "a chunk of full observations, but this replay stores frames (frame mode)"
+
+    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
+        return [check_one(checker, c) for c in chunks]
+
+    def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]:
+        fcs = []
+        for c in chunks:
+            refs = c.msg.frame_refs()
+            batch = {k: v for k, v in c.data.items() if k not in refs}
+            fcs.append(FrameChunk(c.msg.actor_id, c.msg.frame_base, c.msg.frames, batch, refs, c.msg.priorities))
+        return [r if isinstance(r, Exception) else Stored(r.keys, r.dropped) for r in self.buffer.insert_many(fcs)]
+
+    def stats(self) -> dict[str, Any]:
+        b = self.buffer
+        return {"frames_stored": b.frames_stored, "frames_unresolved_items": b.unresolved,
+                "evicted_by_frames": b.evicted_by_frames}

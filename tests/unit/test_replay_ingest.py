@@ -1,0 +1,125 @@
+"""The replay's ingest (replay/ingest.py) keeps going whatever one message does: an exception
+other than the protocol's own while one chunk is handled costs that chunk only, is counted as
+``rejected_internal`` and by type, and the ingest thread (run by the role loop's supervisor)
+handles the next chunk. In process, with an in-memory node."""
+
+import time
+
+import numpy as np
+
+from zenrl.common import protocol as P
+from zenrl.common.config import load_config
+from zenrl.common.roles import Supervisor
+from zenrl.replay.service import ReplayService
+from zenrl.replay.store import PlainStore
+
+B = 8
+
+
+def _service(**over):
+    sets = {"capacity": 200, "min_size": 1, "check_semantics": False, **over}
+    return ReplayService(load_config(None, [f"replay.{k}={v}" for k, v in sets.items()], environ={}), node=None, run_id="r")
+
+
+def _payload(seq=0, policy_version=0, actor="a0"):
+    rng = np.random.default_rng(seq)
+    data = {"obs": rng.uniform(-0.4, 0.4, (B, 4)).astype(np.float32), "action": rng.integers(0, 2, B),
+            "reward": np.ones(B, np.float32), "next_obs": rng.uniform(-0.4, 0.4, (B, 4)).astype(np.float32),
+            "terminated": np.zeros(B, bool), "n": np.ones(B, np.uint8)}
+    return P.TransitionBatch(actor, policy_version, seq, data).encode()
+
+
+#: a policy version the wire's "int" admits but an int64 column cannot hold (OverflowError)
+HUGE = 2**64 - 1
+
+
+def test_an_internal_error_costs_one_chunk_and_is_counted_by_type():
+    svc = _service()
+    n = svc.ingest_many([(_payload(0), "zenrl/r/transitions/a0"), (_payload(1, HUGE), "zenrl/r/transitions/evil"),
+                         (_payload(2), "zenrl/r/transitions/a0")])
+    assert n == 2 * B and svc.buffer.inserts_total == 2 * B
+    v = svc.stats_values()
+    assert v["rejected_internal"] == 1 and v["rejected_internal/OverflowError"] == 1 and v["rejected_total"] == 1
+    assert v["rejected_from/evil"] == 1
+    # the first chunk of all may be the bad one: storage is then allocated from the next
+    fresh = _service()
+    assert fresh.ingest_many([(_payload(1, HUGE), "evil"), (_payload(2), "a0")]) == B
+
+
+def test_an_insert_that_raises_is_retried_chunk_by_chunk(monkeypatch):
+    """A multi-chunk insert that raises something unexpected (and stored nothing) is retried one
+    chunk at a time: the honest chunks of the batch are stored, the one that raises is counted."""
+    svc = _service()
+    assert svc.ingest(_payload(0)) == B
+    real = PlainStore.insert
+
+    def insert(self, chunks):
+        if any(c.msg.actor_id == "evil" for c in chunks):
+            raise MemoryError("too big")
+        return real(self, chunks)
+
+    monkeypatch.setattr(PlainStore, "insert", insert)
+    n = svc.ingest_many([(_payload(1), "a0"), (_payload(2, actor="evil"), "evil"), (_payload(3), "a0")])
+    assert n == 2 * B and svc.buffer.inserts_total == 3 * B
+    v = svc.stats_values()
+    assert v["rejected_internal/MemoryError"] == 1 and v["rejected_from/evil"] == 1
+
+
+class FakeNode:
+    """Records declarations; the test calls the callbacks as Zenoh's threads would."""
+
+    def __init__(self):
+        self.subs, self.queryables, self.tokens, self.withdrawn = {}, {}, [], []
+
+    def subscribe(self, key, cb):
+        self.subs[key] = cb
+        return key
+
+    def queryable(self, key, handler):
+        self.queryables[key] = handler
+        return key
+
+    def token(self, key):
+        self.tokens.append(key)
+        return key
+
+    def withdraw(self, entity):
+        self.withdrawn.append(entity)
+        return True
+
+
+def _wait(cond, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
+
+
+def test_the_ingest_thread_outlives_a_message_that_raises():
+    svc = _service()
+    node, sup = FakeNode(), Supervisor()
+    svc.start(node, sup)
+    on_tx = node.subs[svc.keys.transitions_all]
+    try:
+        on_tx(svc.keys.transitions("evil"), _payload(0, HUGE))
+        on_tx(svc.keys.transitions("a0"), _payload(1))
+        _wait(lambda: svc.buffer is not None and svc.buffer.inserts_total == B)
+        on_tx(svc.keys.transitions("a0"), _payload(2))
+        _wait(lambda: svc.buffer.inserts_total == 2 * B)
+        sup.check()  # no RoleFailed: the thread runs
+        v = {**svc.report(1.0)[0], **sup.values()}
+        assert v["rejected_internal/OverflowError"] == 1 and v["stalled"] == "" and v["errors_total"] == 0
+    finally:
+        svc.close()
+    assert node.withdrawn == [svc.keys.transitions_all]  # the transitions subscriber goes first
+
+
+def test_close_inserts_what_was_queued():
+    svc = _service()
+    node, sup = FakeNode(), Supervisor()
+    for i in range(5):  # queued before the thread runs: close() must still insert them all
+        svc.ingestor.on_transitions(svc.keys.transitions("a0"), _payload(i))
+    svc.start(node, sup)
+    svc.close()
+    assert svc.buffer.inserts_total == 5 * B and svc.ingestor.pending() == 0
+    assert not any(t.is_alive() for t in sup.threads)
