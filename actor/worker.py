@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -95,7 +95,8 @@ class ActorWorker:
 
     def __init__(self, keys: P.Keys, worker_id: str, slot: int | None, envs: EnvBatch, policy: Policy,
                  adder: Adder, weights: WeightsFollower, gate: Gate, *, poll_steps: int | None,
-                 report_s: float, query_timeout_s: float, round_seed: Any = None, pacer: StepPacer | None = None,
+                 report_s: float, query_timeout_s: float, round_seed: Callable[[int], int] | None = None,
+                 pacer: StepPacer | None = None,
                  episode_epsilon: float | None = None, max_steps: int | None = None) -> None:
         self.keys, self.id, self.slot = keys, worker_id, slot
         self.envs, self.policy, self.adder, self.weights, self.gate = envs, policy, adder, weights, gate

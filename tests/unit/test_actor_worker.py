@@ -1,6 +1,8 @@
 """The actor worker (actor/worker.py) in RoleLoop with an in-memory node: supervision of its
 steps, and what the Ape-X and evaluation compositions publish (A3C's: tests/unit/test_a3c.py)."""
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -65,6 +67,19 @@ def test_apex_actor_survives_a_failing_env_step_counts_it_and_publishes(tmp_path
     episodes = [P.EpisodeStats.decode(p) for p in node.sent(keys.episodes("a0"))]
     assert episodes and all(e.slot == 1 and e.epsilon == pytest.approx(env_epsilons(1, 2, E).mean()) for e in episodes)
     assert sum(len(e.returns) for e in episodes) >= steps * E // 15 - E
+
+
+def test_apex_actor_keeps_to_its_step_rate_cap_in_bounded_waits(tmp_path):
+    cfg = _cfg(tmp_path, f"actor.max_steps_per_s={E * 100}")  # 100 batched steps/s: one per 10 ms
+    actor = ApexActor(cfg, FakeNode(None), "t", "a0", slot=0, num_slots=1)
+    actor.start(actor.node)
+    t0, waits = time.monotonic(), 0
+    while actor.steps < 20:
+        waits += not actor.step(0.001)  # the loop's stop check runs between these
+    elapsed = time.monotonic() - t0
+    assert elapsed >= 20 * 0.010 * 0.99, "faster than the cap"
+    assert waits >= 20, "each wait must be bounded by the step's timeout"
+    actor.close()
 
 
 def _eval_cfg(tmp_path, *sets):
