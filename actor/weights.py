@@ -5,6 +5,7 @@ evaluator)."""
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import torch
@@ -45,7 +46,19 @@ class WeightsFollower:
         return self._load(payload)
 
     def maybe_load(self) -> bool:
+        """Load the newest broadcast not yet taken; True if the network changed."""
         payload = self._latest.take()
+        return payload is not None and self._load(payload)
+
+    def await_first(self, timeout_s: float) -> bool:
+        """True once the network holds the learner's weights: takes the broadcast, else asks the
+        learner, else waits for a broadcast, for at most about ``timeout_s`` in all."""
+        if self.version >= 0 or self.maybe_load():
+            return True
+        deadline = time.monotonic() + timeout_s
+        if self.fetch_initial(timeout_s):
+            return True
+        payload = self._latest.wait(max(0.0, deadline - time.monotonic()))
         return payload is not None and self._load(payload)
 
     def _load(self, payload: bytes) -> bool:

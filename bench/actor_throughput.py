@@ -138,15 +138,15 @@ BUCKETS = [
     ("env_step (EnvBatch.step, incl. gym + stacking)", "actor/batch_env.py", "step"),
     ("gym env.step/reset called by EnvBatch.step", None, "gym"),  # from the callers table
     ("stack_flat (obs list -> array)", "actor/batch_env.py", "stack_flat"),
-    ("q_forward (numpy or torch)", "actor/service.py", "_forward"),
+    ("q_forward (numpy or torch)", "actor/policies.py", "__call__"),
     ("n-step blocks: record each step + emit (incl. priorities)", "actor/nstep.py", "add"),
     ("n-step blocks: emit (per block)", "actor/nstep.py", "_emit"),
-    ("send (encode, put)", "actor/service.py", "_send"),
+    ("send (encode, put)", "actor/adders.py", "_send"),
     ("replay_client.insert (encode + put)", "common/replay_client.py", "insert"),
     ("TransitionBatch.encode", "common/protocol.py", "encode"),
     ("zenoh put", "common/replay_client.py", "_put"),
-    ("weights.maybe_load", "actor/service.py", "maybe_load"),
-    ("episode/stats report", "actor/service.py", "_report"),
+    ("weights.maybe_load", "actor/weights.py", "maybe_load"),
+    ("episode/stats report", "common/roles.py", "_report"),
 ]
 
 
@@ -174,8 +174,8 @@ def profile_actor(cfg: Any, node: Any, run: str, duration_s: float) -> dict[str,
     st = pstats.Stats(prof)
     entries = st.stats  # {(file, line, func): (cc, nc, tt, ct, callers)}
     # the run loop's own cumulative time (excludes the start-up query for weights)
-    run_ct = next((v[3] for k, v in entries.items() if k[0].endswith("actor/service.py") and k[2] == "run"), wall)
-    init_ct = sum(v[3] for k, v in entries.items() if k[0].endswith("actor/service.py") and k[2] == "fetch_initial")
+    run_ct = next((v[3] for k, v in entries.items() if k[0].endswith("common/roles.py") and k[2] == "run"), wall)
+    init_ct = sum(v[3] for k, v in entries.items() if k[0].endswith("actor/weights.py") and k[2] == "fetch_initial")
     loop_ct = max(run_ct - init_ct, 1e-9)
     buckets = {}
     for label, suffix, func in BUCKETS:

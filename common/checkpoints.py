@@ -48,12 +48,25 @@ DEFAULT_ALGO = "apex"
 # --------------------------------------------------------------------------------------------
 # The schema
 # --------------------------------------------------------------------------------------------
+#: the checkpoint schema of each algorithm, by ``algo``: every :class:`TrainingState` subclass
+#: with an ``algo`` enters it when defined (the registry of whole algorithms,
+#: :data:`zenrl.algorithms.ALGORITHMS`, names the same classes; a unit test holds them equal)
+TRAINING_STATES: dict[str, type["TrainingState"]] = {}
+
+
 @dataclasses.dataclass(kw_only=True)
 class TrainingState:
     """What every learner's checkpoint holds. Subclasses (one per algorithm) add their fields and
     set the class attributes :attr:`algo`, :attr:`network` and :attr:`policy_path`."""
 
-    #: the ``"algo"`` the file records (``RunConfig.algo``)
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        if cls.algo:
+            TRAINING_STATES[cls.algo] = cls
+
+
+    #: the ``"algo"`` the file records (``RunConfig.algo``); a subclass that sets it is
+    #: registered in :data:`TRAINING_STATES` by being defined
     algo: ClassVar[str] = ""
     #: the policy network class: what actors act with and tools load the policy into
     network: ClassVar[type[torch.nn.Module]]
@@ -153,9 +166,6 @@ class A3CTrainingState(TrainingState):
     env_steps_trained: int = 0
 
 
-#: the checkpoint schema of each algorithm, by ``algo`` (the registry of whole algorithms,
-#: :data:`zenrl.algorithms.ALGORITHMS`, names the same classes; a unit test holds them equal)
-TRAINING_STATES: dict[str, type[TrainingState]] = {s.algo: s for s in (ApexTrainingState, A3CTrainingState)}
 
 
 def training_state_class(algo: str, where: str = "checkpoint") -> type[TrainingState]:

@@ -11,7 +11,7 @@ budget wait, an orderly stop, and **supervision**::
     worker = ApexLearner(cfg, node, run_id)          # or ApexActor, ReplayService, ...
     RoleLoop(node, keys, "learner", worker.id, cadence, metrics).run(worker, stop)
     # -> worker.start(node, sup); while not stop: worker.step(idle_s) ... report/save on cadence
-    #    finally: worker.save(); worker.close()
+    #    finally: worker.save(); worker.close(); one last report
 
 Supervision: an exception in one unit of work (a step, a report, a save) is caught, counted by
 type (``errors_total`` and ``errors/<Type>`` in the role's stats), logged with its traceback
@@ -234,6 +234,8 @@ class RoleLoop:
         c = self.cadence
         sup = self.sup
         started = False
+        stats_pub = None
+        last_log = time.monotonic()
         try:
             worker.start(self.node, sup)
             started = True
@@ -264,6 +266,9 @@ class RoleLoop:
                 try:
                     worker.close()
                 finally:
+                    # the totals after close's final flush (chunks left undelivered, ...) are reported once more
+                    if stats_pub is not None:
+                        sup.call("report", self._report, worker, stats_pub, max(time.monotonic() - last_log, 1e-6))
                     if self.metrics is not None:
                         self.metrics.close()
 

@@ -2,17 +2,17 @@
 gradients against plain autograd on the same rollout, and the learner's gradient checks
 (staleness, unknown versions, NaN/overflow, wrong names/shapes), checkpoint round trip."""
 
-import threading
-
 import numpy as np
 import pytest
 import torch
 from torch.nn import functional as F
 
-from zenrl.actor.a3c import A3CWorker, gae_returns, nstep_returns, rollout_gradients
+from tests.unit.actor_fakes import FakeNode, run_until, step_until
+from zenrl.actor.a3c import A3CWorker
+from zenrl.common.a3c_loss import gae_returns, nstep_returns, rollout_gradients
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
-from zenrl.common.errors import ProtocolError, RemoteTimeout
+from zenrl.common.errors import ProtocolError
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
 from zenrl.common.specs import ArraySpec
 from zenrl.common.transport import LatestValue
@@ -83,41 +83,10 @@ def test_gae_hand_computed():
 # --------------------------------------------------------------------------------------------
 # Worker: published gradients == autograd of the same loss on the same rollout
 # --------------------------------------------------------------------------------------------
-class FakePub:
-    def __init__(self):
-        self.sent = []
-
-    def put(self, payload):
-        self.sent.append(payload)
-
-
-class FakeNode:
-    """Stands in for zenrl.common.transport.Node: records puts, serves one weights payload."""
-
-    def __init__(self, weights_payload=None):
-        self.pubs = {}
-        self.latest = LatestValue()
-        self.weights_payload = weights_payload
-
-    def publisher(self, key, low_priority=False, express=False):
-        return self.pubs.setdefault(key, FakePub())
-
-    def subscribe_latest(self, key):
-        return self.latest
-
-    def query(self, key, payload=None, timeout_s=5.0):
-        if self.weights_payload is None:
-            raise RemoteTimeout("no learner")
-        return self.weights_payload
-
-    def token(self, key):
-        return None
-
-
 def _cfg(tmp_path, **kw):
     sets = [f"runs_dir={tmp_path}", "algo=a3c", "network.hidden=[16]", "actor.envs_per_actor=4",
             "a3c.t_max=20", "a3c.entropy_coef=0.05", "a3c.value_coef=0.5", "learner.gamma=0.9",
-            "env.max_episode_steps=15"] + [f"{k}={v}" for k, v in kw.items()]
+            "env.max_episode_steps=15", "actor.episode_report_s=0.01"] + [f"{k}={v}" for k, v in kw.items()]
     return load_config(None, sets, environ={})
 
 
@@ -176,15 +145,25 @@ def _reference_grads(net, ro, gamma, vc, ec, lam=1.0):
     return {k: p.grad.numpy().copy() for k, p in net.named_parameters()}
 
 
+def _record_rollouts(w):
+    """The rollouts ``w`` turns into gradients, in order."""
+    rollouts = []
+    message = w.adder.gradients_message
+    w.adder.gradients_message = lambda ro: rollouts.append(ro) or message(ro)
+    return rollouts
+
+
 def test_published_gradients_equal_autograd(tmp_path):
     cfg = _cfg(tmp_path)
     ref_net, payload = _weights(cfg, version=7)
     node = FakeNode(payload)
     w = A3CWorker(cfg, node, "t", "w0", 0)
-    rollouts = []
-    collect = w.collect
-    w.collect = lambda: rollouts.append(collect()) or rollouts[-1]
-    w.run(threading.Event(), max_rollouts=2)
+    rollouts = _record_rollouts(w)
+    stats_key = P.Keys("t").stats("actor", "w0")
+    # the worker idles once its budget is spent; its stats keep coming on their cadence
+    run_until(lambda stop: w.run(stop, max_rollouts=2),
+              lambda: w.done() and any(P.Stats.decode(p).values["env_steps"] == 2 * 20 * 4 for p in node.sent(stats_key)),
+              what="2 rollouts and their stats")
     sent = node.pubs[P.Keys("t").gradients("w0")].sent
     assert len(sent) == 2 and len(rollouts) == 2
     assert any(ro.terminated.any() for ro in rollouts), "the rollouts should hold terminations"
@@ -197,8 +176,15 @@ def test_published_gradients_equal_autograd(tmp_path):
         for k in ref:
             np.testing.assert_allclose(msg.grads[k], ref[k], rtol=1e-4, atol=1e-6, err_msg=k)
         assert any(np.abs(g).sum() > 0 for g in ref.values())
-    stats = P.Stats.decode(node.pubs[P.Keys("t").stats("actor", "w0")].sent[-1])
-    assert stats.values["env_steps"] == 2 * 20 * 4
+    stats = P.Stats.decode(node.sent(stats_key)[-1])
+    assert stats.values["env_steps"] == 2 * 20 * 4 and stats.values["sent_gradients"] == 2
+    # the loss stats come with the reports of intervals that had rollouts
+    assert any({"loss", "policy_loss", "value_loss", "entropy", "slot", "policy_version"} <= set(P.Stats.decode(p).values)
+               for p in node.sent(stats_key))
+    assert node.tokens == [P.Keys("t").alive("actor", "w0")]
+    episodes = [P.EpisodeStats.decode(p) for p in node.sent(P.Keys("t").episodes("w0"))]
+    assert episodes and all(e.epsilon == 0.0 and e.actor_id == "w0" for e in episodes)
+    assert sum(int(e.lengths.sum()) for e in episodes) <= 2 * 20 * 4 and all((e.lengths <= 15).all() for e in episodes)
 
 
 def test_gae_gradients_equal_autograd(tmp_path):
@@ -206,8 +192,10 @@ def test_gae_gradients_equal_autograd(tmp_path):
     net, payload = _weights(cfg, version=3)
     node = FakeNode(payload)
     w = A3CWorker(cfg, node, "t", "w0", 0)
-    w.weights.fetch_initial(1.0)
-    ro = w.collect()
+    rollouts = _record_rollouts(w)
+    w.start(node)
+    step_until(w, lambda: rollouts)
+    ro = rollouts[0]
     assert ro.terminated.any() and (ro.truncated & ~ro.terminated).any()
     grads, _ = rollout_gradients(w.net, ro, 0.9, 0.5, 0.05, gae_lambda=0.8)
     ref = _reference_grads(net, ro, 0.9, 0.5, 0.05, lam=0.8)
@@ -237,11 +225,25 @@ def test_worker_takes_newest_params_between_steps(tmp_path):
     _, p9 = _weights(cfg, version=9, seed=5)
     node = FakeNode(p7)
     w = A3CWorker(cfg, node, "t", "w0", 0)
-    assert w.weights.fetch_initial(1.0) and w.weights.version == 7
+    w.start(node)
+    assert w.weights.version == 7
     node.latest.set("k", p9)
-    ro = w.collect()
+    step_until(w, lambda: w.adder.rollouts == 1)
     assert w.weights.version == 9
-    assert w.gradients_message(ro).version == 9
+    assert P.Gradients.decode(node.sent(P.Keys("t").gradients("w0"))[0]).version == 9
+
+
+def test_worker_waits_for_the_learners_first_params(tmp_path):
+    """No learner yet: the worker takes no step (its gradients need a version), and starts
+    once the broadcast brings params."""
+    cfg = _cfg(tmp_path)
+    _, p4 = _weights(cfg, version=4)
+    node = FakeNode(None)
+    w = A3CWorker(cfg, node, "t", "w0", 0)
+    w.start(node)
+    assert not w.step(0.05) and w.env_steps == 0
+    node.latest.set("k", p4)
+    assert w.step(0.05) and w.env_steps == 4 and w.weights.version == 4
 
 
 # --------------------------------------------------------------------------------------------

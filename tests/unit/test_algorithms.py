@@ -4,8 +4,8 @@ common/ reads by an algorithm's name (its checkpoint schema and policy network) 
 import pytest
 
 from zenrl.algorithms import ALGORITHMS, algorithm
-from zenrl.common import algorithms as common_algorithms
-from zenrl.common.checkpoints import TRAINING_STATES
+from zenrl.common.checkpoints import TRAINING_STATES, training_state_class
+from zenrl.common.errors import CheckpointError
 from zenrl.common.config import RunConfig
 from zenrl.learner.base import LearnerBase
 
@@ -19,7 +19,7 @@ def test_every_configurable_algorithm_has_an_entry():
 def test_an_entrys_parts_agree_with_what_common_reads(name):
     a = algorithm(name)
     assert a.name == name and a.checkpoint.algo == name
-    assert TRAINING_STATES[name] is a.checkpoint and common_algorithms.algorithm(name) is a.checkpoint
+    assert TRAINING_STATES[name] is a.checkpoint and training_state_class(name) is a.checkpoint
     assert a.checkpoint.network is a.network  # tools and self-play build the network the learner trains
     assert issubclass(a.learner, LearnerBase) and a.learner.schema is a.checkpoint
     assert callable(a.actor)
@@ -28,5 +28,5 @@ def test_an_entrys_parts_agree_with_what_common_reads(name):
 def test_unknown_algorithm_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown algorithm 'ppo'"):
         algorithm("ppo")
-    with pytest.raises(ValueError, match="unknown algorithm 'ppo'"):
-        common_algorithms.algorithm("ppo")
+    with pytest.raises(CheckpointError, match="unknown algorithm 'ppo'"):
+        training_state_class("ppo")

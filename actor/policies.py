@@ -1,0 +1,136 @@
+"""How an actor picks its actions: one batched forward per step on flat observations
+``{name: array[E, ...]}``, giving int64[E] actions and the extras its adder needs.
+
+* :class:`EpsilonGreedyQ` (Ape-X): per-env epsilon from the Ape-X ladder over argmax Q; the Q
+  values go to the adder, which reuses them for the initial priorities.
+* :class:`Sampling` (A3C): actions drawn from an actor-critic's softmax policy.
+* :class:`Greedy` (evaluation): argmax of the Q values or of the policy logits.
+
+A policy acts with the network the weights follower loads into (``net``); the worker calls
+:meth:`sync` after each load. For MLP networks the forward runs in numpy (:class:`NumpyQ`, the
+same values as the network's forward to float32 rounding): torch's per-op dispatch costs more
+than the arithmetic of the small MLPs actors run.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Protocol
+
+import numpy as np
+import torch
+
+from zenrl.common.exploration import EpsilonGreedy
+from zenrl.common.networks import NumpyQ, to_tensors
+from zenrl.common.policy_io import greedy_actions, sampled_actions
+
+Obs = Mapping[str, np.ndarray]
+
+
+class Policy(Protocol):
+    """What :class:`~zenrl.actor.worker.ActorWorker` asks of a policy."""
+
+    net: torch.nn.Module
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, Any]:
+        """int64[E] actions for flat observations [E, ...], and the extras for the adder."""
+
+    def sync(self) -> None:
+        """``net``'s weights changed (a numpy copy must follow)."""
+
+    def reseed(self, seed: int) -> None:
+        """Restart the policy's random stream (an evaluation round is reproducible)."""
+
+
+class QForward:
+    """float32[B, A] outputs of ``net`` (Q values, or an actor-critic's logits) for flat
+    observations [B, ...], in numpy where the network is an MLP."""
+
+    def __init__(self, net: torch.nn.Module, use_numpy: bool = True) -> None:
+        self.net = net
+        self.fast = NumpyQ.of(net) if use_numpy else None
+
+    def sync(self) -> None:
+        if self.fast is not None:
+            self.fast.load(self.net)
+
+    def __call__(self, obs: Obs) -> np.ndarray:
+        if self.fast is not None:
+            return self.fast(obs)
+        with torch.no_grad():
+            out = self.net(to_tensors(obs))
+        return (out[0] if isinstance(out, tuple) else out).numpy()
+
+
+def _explore(actions: np.ndarray, epsilon: float, n_actions: int, rng: np.random.Generator) -> np.ndarray:
+    """Each of the E ``actions`` replaced by a uniform one with probability ``epsilon``."""
+    if epsilon > 0:
+        r = rng.random(actions.shape[0]) < epsilon
+        actions[r] = rng.integers(0, n_actions, int(r.sum()))
+    return actions
+
+
+class EpsilonGreedyQ:
+    """Ape-X acting: env i acts at random with probability ``eps[i]`` (float64[E], its rung of
+    the ladder), else greedily on Q. Extras: the float32[E, A] Q values acted on."""
+
+    def __init__(self, net: torch.nn.Module, eps: np.ndarray, n_actions: int, rng: np.random.Generator) -> None:
+        self.net = net
+        self.eps = eps
+        self.q = QForward(net)
+        self._pick = EpsilonGreedy(eps, n_actions, rng)
+
+    def sync(self) -> None:
+        self.q.sync()
+
+    def reseed(self, seed: int) -> None:
+        self._pick.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, np.ndarray]:
+        q = self.q(obs)
+        return self._pick(q), q
+
+    def values(self, obs: Obs) -> np.ndarray:
+        """float[B] ``max_a Q(s, a)`` (the n-step builder's bootstrap of truncated episodes)."""
+        return self.q(obs).max(1)
+
+
+class Greedy:
+    """Argmax actions of a Q network or an actor-critic (evaluation), with ``epsilon`` uniform
+    actions from its own generator. The selection is :func:`~zenrl.common.policy_io.greedy_actions`
+    (what the tools and self-play use); an MLP network takes the numpy route to the same
+    argmax. No extras."""
+
+    def __init__(self, net: torch.nn.Module, n_actions: int, epsilon: float = 0.0, seed: int = 0,
+                 use_numpy: bool = True) -> None:
+        self.net = net
+        self.n_actions, self.epsilon = n_actions, epsilon
+        self.rng = np.random.default_rng(seed)
+        self.q = QForward(net, use_numpy)
+
+    def sync(self) -> None:
+        self.q.sync()
+
+    def reseed(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, None]:
+        a = greedy_actions(self.net, obs) if self.q.fast is None else self.q(obs).argmax(1)
+        return _explore(a, self.epsilon, self.n_actions, self.rng), None
+
+
+class Sampling:
+    """Actions drawn from an actor-critic's categorical policy (A3C acting; evaluation with
+    ``evaluator.policy: sample``), with ``epsilon`` uniform actions. No extras."""
+
+    def __init__(self, net: torch.nn.Module, n_actions: int, rng: np.random.Generator, epsilon: float = 0.0) -> None:
+        self.net = net
+        self.n_actions, self.epsilon, self.rng = n_actions, epsilon, rng
+
+    def sync(self) -> None:
+        pass  # acts with torch: nothing to copy
+
+    def reseed(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, None]:
+        return _explore(sampled_actions(self.net, obs, self.rng), self.epsilon, self.n_actions, self.rng), None
