@@ -95,6 +95,8 @@ class UnrollQueue:
     def take(self, n: int, timeout: float) -> list[Unroll] | None:
         """``n`` unrolls, round-robin across sources, oldest first within each; waits up to
         ``timeout`` seconds for them, else returns None (nothing is taken)."""
+        if not 1 <= n <= self.max_unrolls:
+            raise ValueError(f"cannot take {n} unrolls from a queue of at most {self.max_unrolls}")
         deadline = time.monotonic() + timeout
         with self._cv:
             while True:

@@ -117,6 +117,8 @@ def test_take_times_out_and_takes_nothing():
     q.put(_u())
     assert q.take(2, timeout=0.05) is None
     assert len(q) == 1
+    with pytest.raises(ValueError, match="at most 10"):
+        q.take(11, timeout=0)
 
 
 def test_take_wakes_when_enough_arrive():
