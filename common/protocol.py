@@ -736,8 +736,9 @@ class Stats(Message):
 #: Most steps one Unroll may carry, and most actions its behaviour logits may have.
 MAX_UNROLL_STEPS = 4096
 MAX_UNROLL_ACTIONS = 65536
-#: Cap on the decoded size of one Unroll (all arrays, compressed ones at their declared size),
-#: checked from the declared shapes before anything is decompressed.
+#: Cap on the decoded size of one Unroll's observation arrays (``obs`` and ``final_obs``, the
+#: ones that may be compressed), checked from the declared shapes before anything is
+#: decompressed; the other arrays travel raw, bound by the message cap.
 MAX_UNROLL_BYTES = 256 * 1024 * 1024
 #: Largest magnitude of an Unroll's integers (policy_version, seq): they fit a signed int64.
 MAX_UNROLL_INT = (1 << 63) - 1
@@ -762,8 +763,8 @@ class Unroll(Message):
     corrections). Float arrays must be finite. uint8 observation arrays may be lz4-compressed.
 
     Decoding checks, before decompressing anything: the steps T (from ``action``'s declared
-    shape) are 1..MAX_UNROLL_STEPS, every ``obs`` array declares T+1 rows, and all declared
-    sizes together stay under MAX_UNROLL_BYTES."""
+    shape) are 1..MAX_UNROLL_STEPS, every ``obs`` array declares T+1 rows, and the observation
+    arrays' declared sizes together stay under MAX_UNROLL_BYTES."""
 
     TYPE: ClassVar[str] = "unroll"
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
