@@ -77,6 +77,8 @@ def vtrace(log_rhos: torch.Tensor, rewards: torch.Tensor, values: torch.Tensor, 
 
     terminated = terminated.bool()
     cut = truncated.bool() & ~terminated  # bootstrap from the final observation, not x_{s+1}
+    if truncated_values is None and bool(cut.any()):
+        raise ValueError("truncated steps need truncated_values (else the next episode's value would leak in)")
     discounts = gamma * (~terminated).to(dtype)
     # the trace from s+1 reaches s only inside one episode
     traces = discounts * cs * (~(terminated | cut)).to(dtype)

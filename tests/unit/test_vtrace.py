@@ -261,6 +261,10 @@ def test_targets_carry_no_gradient_and_keep_dtype():
     out = vtrace(torch.zeros(T, B), torch.ones(T, B), v, torch.zeros(B), torch.zeros(T, B, dtype=torch.bool),
                  torch.zeros(T, B, dtype=torch.bool), None, G)
     assert not out.vs.requires_grad and out.vs.dtype == torch.float32 and out.vs.shape == (T, B)
+    trunc = torch.zeros(T, B, dtype=torch.bool)
+    trunc[1, 0] = True
+    with pytest.raises(ValueError, match="truncated_values"):
+        vtrace(torch.zeros(T, B), torch.ones(T, B), v, torch.zeros(B), torch.zeros(T, B, dtype=torch.bool), trunc, None, G)
     with pytest.raises(ValueError, match="bootstrap_value"):
         vtrace(torch.zeros(T, B), torch.ones(T, B), v, torch.zeros(T), torch.zeros(T, B, dtype=torch.bool),
                torch.zeros(T, B, dtype=torch.bool), None, G)
