@@ -35,7 +35,7 @@ import torch
 
 @dataclass(frozen=True)
 class VTraceReturns:
-    """Outputs, all float32 [T, B] and detached.
+    """Outputs, all [T, B] in the dtype of ``values``, detached.
 
     ``vs``: V-trace value targets v_s. ``pg_advantages``: ``rho_pg_s (q_s - V(x_s))``, the
     IMPALA policy-gradient advantages. ``q_estimates``: ``q_s = r_s + gamma_s v_{s+1}`` (the
