@@ -67,6 +67,7 @@ class Keys:
     ``weights``                      put          :class:`Weights`          learner -> actors
     ``learner/weights``              queryable    (empty) -> :class:`Weights` (latest)
     ``gradients/<worker>``           put          :class:`Gradients`        A3C worker -> learner
+    ``unrolls/<actor>``              put          :class:`Unroll`           IMPALA actor -> learner
     ``episodes/<actor>``             put          :class:`EpisodeStats`     actor -> anyone
     ``eval``                         put          :class:`EvalResult`       evaluator -> anyone
     ``stats/<role>/<id>``            put          :class:`Stats`            every process
@@ -109,6 +110,13 @@ class Keys:
     @property
     def gradients_all(self) -> str:
         return f"{self.prefix}/gradients/*"
+
+    def unrolls(self, actor_id: str) -> str:
+        return f"{self.prefix}/unrolls/{check_name('actor_id', actor_id)}"
+
+    @property
+    def unrolls_all(self) -> str:
+        return f"{self.prefix}/unrolls/*"
 
     def episodes(self, actor_id: str) -> str:
         return f"{self.prefix}/episodes/{check_name('actor_id', actor_id)}"
@@ -723,3 +731,160 @@ class Stats(Message):
     id: str
     time: float
     values: dict[str, Any] = field(default_factory=dict)
+
+
+#: Most steps one Unroll may carry, and most actions its behaviour logits may have.
+MAX_UNROLL_STEPS = 4096
+MAX_UNROLL_ACTIONS = 65536
+#: Cap on the decoded size of one Unroll's observation arrays (``obs`` and ``final_obs``, the
+#: ones that may be compressed), checked from the declared shapes before anything is
+#: decompressed; the other arrays travel raw, bound by the message cap.
+MAX_UNROLL_BYTES = 256 * 1024 * 1024
+#: Largest magnitude of an Unroll's integers (policy_version, seq): they fit a signed int64.
+MAX_UNROLL_INT = (1 << 63) - 1
+
+_UNROLL_STEP_FIELDS = {"action": "int64", "behaviour_logp": "float32", "reward": "float32",
+                       "terminated": "bool", "truncated": "bool"}
+
+
+@dataclass(frozen=True)
+class Unroll(Message):
+    """IMPALA actor -> learner: T consecutive steps of one env, acted with the actor's policy at
+    ``policy_version`` (-1 before it received any weights); ``seq`` counts the actor's unrolls.
+
+    ``obs``: ``{"obs" or "obs/<key>": array[T+1, ...]}``, the observations acted on at steps
+    0..T-1, then the one after the last step (the bootstrap observation; where step T-1 ended an
+    episode it is the next episode's first). ``action`` int64[T]; ``behaviour_logp`` float32[T]
+    (log mu(a_t|x_t)); ``reward`` float32[T]; ``terminated``, ``truncated`` bool[T].
+    ``final_obs``: ``{same names: array[K, ...]}``, the true final observations of the K steps
+    with ``truncated & ~terminated``, in step order (the learner bootstraps from them; the
+    unroll's next row is already the reset observation); nil or 0-row arrays when K = 0.
+    ``behaviour_logits``: float32[T, A] or nil (lets a learner compute KL or full-distribution
+    corrections). Float arrays must be finite. uint8 observation arrays may be lz4-compressed.
+
+    Decoding checks, before decompressing anything: the steps T (from ``action``'s declared
+    shape) are 1..MAX_UNROLL_STEPS, every ``obs`` array declares T+1 rows, and the observation
+    arrays' declared sizes together stay under MAX_UNROLL_BYTES."""
+
+    TYPE: ClassVar[str] = "unroll"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
+                                        "obs": "arrays", "action": "array", "behaviour_logp": "array",
+                                        "reward": "array", "terminated": "array", "truncated": "array",
+                                        "final_obs": "arrays?", "behaviour_logits": "array?"}
+    actor_id: str
+    policy_version: int
+    seq: int
+    obs: dict[str, np.ndarray]
+    action: np.ndarray
+    behaviour_logp: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    final_obs: dict[str, np.ndarray] | None = None
+    behaviour_logits: np.ndarray | None = None
+
+    @property
+    def steps(self) -> int:
+        """T, the number of steps."""
+        return int(self.action.shape[0])
+
+    @property
+    def cut(self) -> np.ndarray:
+        """bool[T]: the steps whose final observation is in ``final_obs`` (truncated, not terminated)."""
+        return self.truncated & ~self.terminated
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of all arrays once decoded (what the learner's queue holds)."""
+        arrays = [*self.obs.values(), *(self.final_obs or {}).values(), self.action, self.behaviour_logp,
+                  self.reward, self.terminated, self.truncated]
+        if self.behaviour_logits is not None:
+            arrays.append(self.behaviour_logits)
+        return sum(int(a.nbytes) for a in arrays)
+
+    @classmethod
+    def _from_envelope(cls, env: dict[str, Any]) -> "Message":
+        cls._precheck(env)
+        return super()._from_envelope(env)
+
+    @staticmethod
+    def _precheck(env: dict[str, Any]) -> None:
+        """Declared T and sizes, read from the array maps' ``shape``/``size`` entries alone
+        (maps too malformed to read are left to the full decoder, which refuses them)."""
+        def shape_of(m: Any) -> list[int] | None:
+            if type(m) is dict and type(m.get("shape")) is list and all(type(d) is int and d >= 0 for d in m["shape"]):
+                return m["shape"]
+            return None
+
+        act = shape_of(env.get("action"))
+        if act is None or len(act) != 1:
+            return
+        T = act[0]
+        if not 1 <= T <= MAX_UNROLL_STEPS:
+            raise ProtocolError("action", f"declares {T} steps, outside 1..{MAX_UNROLL_STEPS}", "batch" if T == 0 else "size")
+        total = 0
+        for group in ("obs", "final_obs"):
+            maps = env.get(group)
+            if type(maps) is not dict:
+                continue
+            for k, m in maps.items():
+                shape = shape_of(m)
+                if shape is None:
+                    continue
+                if group == "obs" and (not shape or shape[0] != T + 1):
+                    raise ProtocolError(f"obs.{k}", f"declares {shape[:1]} rows; an unroll of {T} steps needs {T + 1}", "batch")
+                total += math.prod(shape) * (_DTYPES[m["dtype"]].itemsize if m.get("dtype") in _DTYPES else 1)
+                if total > MAX_UNROLL_BYTES:
+                    raise ProtocolError(f"{group}.{k}", f"declared sizes exceed {MAX_UNROLL_BYTES} bytes; refused unread", "size")
+
+    def _validate(self) -> None:
+        if not -1 <= self.policy_version <= MAX_UNROLL_INT:
+            raise ProtocolError("policy_version", f"{self.policy_version} is outside -1..2^63-1", "field")
+        if self.seq > MAX_UNROLL_INT:
+            raise ProtocolError("seq", f"{self.seq} is outside 0..2^63-1", "field")
+        T = self.action.shape[0] if self.action.ndim == 1 else -1
+        for k, dt in _UNROLL_STEP_FIELDS.items():
+            a = getattr(self, k)
+            if a.ndim != 1:
+                raise ProtocolError(k, f"must be 1-D [T], got shape {list(a.shape)}", "shape")
+            if a.dtype != np.dtype(dt):
+                raise ProtocolError(k, f"must be {dt}, got {a.dtype.name}", "dtype")
+            if a.shape[0] != T:
+                raise ProtocolError(k, f"has {a.shape[0]} steps, action has {T}", "batch")
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(k, "contains NaN or Inf", "nonfinite")
+        items = {}
+        for k, a in self.obs.items():
+            if k != "obs" and not k.startswith("obs/"):
+                raise ProtocolError(f"obs.{k}", "observation fields are named obs or obs/<key>", "field")
+            # T in 1..MAX_UNROLL_STEPS and T + 1 rows per obs array: checked by _precheck
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise ProtocolError(f"obs.{k}", "contains NaN or Inf", "nonfinite")
+            items[k] = (a.dtype, a.shape[1:])
+        K = int(self.cut.sum())
+        fin = self.final_obs
+        if fin is None:
+            if K:
+                raise ProtocolError("final_obs", f"missing; {K} steps are truncated", "field")
+        else:
+            if fin.keys() != items.keys():
+                raise ProtocolError("final_obs", f"fields {sorted(fin)} differ from obs {sorted(items)}", "field")
+            for k, a in fin.items():
+                if a.dtype != items[k][0]:
+                    raise ProtocolError(f"final_obs.{k}", f"dtype {a.dtype.name} differs from obs {items[k][0].name}", "dtype")
+                if a.shape[1:] != items[k][1]:
+                    raise ProtocolError(f"final_obs.{k}", f"item shape {list(a.shape[1:])} differs from obs {list(items[k][1])}", "shape")
+                if a.shape[0] != K:
+                    raise ProtocolError(f"final_obs.{k}", f"has {a.shape[0]} rows for {K} truncated steps", "batch")
+                if a.dtype.kind == "f" and not np.isfinite(a).all():
+                    raise ProtocolError(f"final_obs.{k}", "contains NaN or Inf", "nonfinite")
+        lg = self.behaviour_logits
+        if lg is not None:
+            if lg.ndim != 2 or lg.shape[0] != T:
+                raise ProtocolError("behaviour_logits", f"must be [T={T}, A], got {list(lg.shape)}", "batch")
+            if not 1 <= lg.shape[1] <= MAX_UNROLL_ACTIONS:
+                raise ProtocolError("behaviour_logits", f"{lg.shape[1]} actions, outside 1..{MAX_UNROLL_ACTIONS}", "shape")
+            if lg.dtype != np.float32:
+                raise ProtocolError("behaviour_logits", f"must be float32, got {lg.dtype.name}", "dtype")
+            if not np.isfinite(lg).all():
+                raise ProtocolError("behaviour_logits", "contains NaN or Inf", "nonfinite")

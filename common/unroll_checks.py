@@ -1,0 +1,142 @@
+"""What an IMPALA unroll must *mean* before the learner trains on it. Pure (no zenoh), unit-tested.
+
+:class:`~zenrl.common.protocol.Unroll` decoding already refuses what is malformed (dtypes, T
+mismatches, NaN/Inf). A well-formed unroll can still wreck the learner: an action index the
+policy does not have crashes ``gather``; a reward of 1e30 or a behaviour log-probability of
+-1e30 (an importance ratio of e^1e30) turns the loss into inf. :class:`UnrollChecker` holds the
+env's spaces and the configured bounds and names the first rule an unroll breaks, like
+``replay/checks.py`` does for Ape-X transitions (the learner quarantines repeat offenders the
+same way).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from zenrl.common.protocol import Unroll
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why an unroll was refused: ``reason`` (a short counter name) and a one-line ``detail``."""
+
+    reason: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class FieldRule:
+    """One observation field: the dtype and shape of one observation, and float64 ``low`` /
+    ``high`` arrays of that shape (None when the dtype's own range is the only bound)."""
+
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+
+
+def obs_rules(space: Any, prefix: str = "obs") -> dict[str, FieldRule]:
+    """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those)
+    in the dtypes zenrl ships them in (uint8 Box stays uint8, other Box float32, Discrete int64)."""
+    import gymnasium as gym  # the learner has it; importing this module does not need it
+
+    if isinstance(space, gym.spaces.Dict):
+        out: dict[str, FieldRule] = {}
+        for k, sub in space.spaces.items():
+            out.update(obs_rules(sub, f"{prefix}/{k}"))
+        return out
+    if isinstance(space, gym.spaces.Discrete):
+        lo = float(space.start)
+        return {prefix: FieldRule(np.dtype(np.int64), (), np.array(lo), np.array(lo + int(space.n) - 1))}
+    if isinstance(space, gym.spaces.Box):
+        dtype = np.dtype(np.uint8) if space.dtype == np.uint8 else np.dtype(np.float32)
+        low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape).copy()
+        high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape).copy()
+        if not (np.isfinite(low).any() or np.isfinite(high).any()):
+            return {prefix: FieldRule(dtype, tuple(space.shape))}
+        return {prefix: FieldRule(dtype, tuple(space.shape), low, high)}
+    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+
+
+class UnrollChecker:
+    """Checks an :class:`Unroll` against the env's spec and the run's bounds.
+
+    ``rules``: the observation fields (:func:`obs_rules`); ``n_actions``: actions in
+    ``0..n_actions-1``; ``max_abs_reward``: bound on ``|reward|``; ``unroll_length``: the T every
+    unroll must have (None: any); ``min_logp``: behaviour log-probabilities must lie in
+    ``[min_logp, logp_tolerance]`` (a probability, with float32 rounding slack);
+    ``check_obs_bounds`` False skips the observations' bounds (dtypes and shapes still count).
+    With behaviour logits, their log-softmax at the action taken must match ``behaviour_logp``
+    within ``logp_match_tolerance``."""
+
+    def __init__(self, rules: Mapping[str, FieldRule], n_actions: int, max_abs_reward: float,
+                 unroll_length: int | None = None, min_logp: float = -1000.0, logp_tolerance: float = 1e-4,
+                 logp_match_tolerance: float = 1e-3, check_obs_bounds: bool = True) -> None:
+        if n_actions < 1:
+            raise ValueError(f"n_actions must be >= 1, got {n_actions}")
+        self.rules = dict(rules)
+        self.n_actions = int(n_actions)
+        self.max_abs_reward = float(max_abs_reward)
+        self.unroll_length = unroll_length
+        self.min_logp = float(min_logp)
+        self.logp_tolerance = float(logp_tolerance)
+        self.logp_match_tolerance = float(logp_match_tolerance)
+        self.check_obs_bounds = check_obs_bounds
+
+    @classmethod
+    def from_spaces(cls, observation_space: Any, action_space: Any, max_abs_reward: float, **kw: Any) -> "UnrollChecker":
+        import gymnasium as gym
+
+        if not isinstance(action_space, gym.spaces.Discrete):
+            raise ValueError(f"zenrl's IMPALA needs a Discrete action space, got {action_space}")
+        return cls(obs_rules(observation_space), int(action_space.n), max_abs_reward, **kw)
+
+    def check(self, u: Unroll) -> Rejection | None:
+        """None if the learner may train on ``u``, else the first rule it breaks."""
+        T = u.steps
+        if self.unroll_length is not None and T != self.unroll_length:
+            return Rejection("length", f"unroll of {T} steps; the run's unroll_length is {self.unroll_length}")
+        if u.obs.keys() != self.rules.keys():
+            return Rejection("spec", f"observation fields {sorted(u.obs)}, the env's are {sorted(self.rules)}")
+        for k, rule in self.rules.items():
+            a = u.obs[k]
+            if a.dtype != rule.dtype or a.shape[1:] != rule.shape:
+                return Rejection("obs_dtype", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says "
+                                              f"{rule.dtype.name}{list(rule.shape)}")
+        a = u.action
+        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
+            bad = int(a.min()) if int(a.min()) < 0 else int(a.max())
+            return Rejection("action_range", f"action {bad} is outside 0..{self.n_actions - 1}")
+        r = u.reward
+        if not np.isfinite(r).all() or float(np.abs(r).max()) > self.max_abs_reward:
+            return Rejection("reward_bound", f"|reward| {float(np.abs(r).max()):.3g} exceeds {self.max_abs_reward:.3g}")
+        lp = u.behaviour_logp
+        if not np.isfinite(lp).all() or float(lp.max()) > self.logp_tolerance or float(lp.min()) < self.min_logp:
+            return Rejection("logp_range", f"behaviour log-probabilities span [{float(lp.min()):.3g}, {float(lp.max()):.3g}], "
+                                           f"outside [{self.min_logp:.3g}, 0]")
+        if u.behaviour_logits is not None:
+            bad = self._check_logits(u)
+            if bad is not None:
+                return bad
+        if self.check_obs_bounds:
+            for group, arrays in (("obs", u.obs), ("final_obs", u.final_obs or {})):
+                for k, x in arrays.items():
+                    rule = self.rules[k]
+                    if rule.low is not None and x.size and ((x < rule.low).any() or (x > rule.high).any()):
+                        return Rejection("obs_bounds", f"{group} field {k} has values outside the env's observation bounds")
+        return None
+
+    def _check_logits(self, u: Unroll) -> Rejection | None:
+        lg = u.behaviour_logits
+        if lg.shape[1] != self.n_actions:
+            return Rejection("spec", f"behaviour logits for {lg.shape[1]} actions, the env has {self.n_actions}")
+        z = lg.astype(np.float64)
+        z = z - z.max(axis=1, keepdims=True)
+        logp = z[np.arange(u.steps), u.action] - np.log(np.exp(z).sum(axis=1))
+        err = float(np.abs(logp - u.behaviour_logp).max())
+        if err > self.logp_match_tolerance:
+            return Rejection("logp_mismatch", f"behaviour_logp differs from the log-softmax of behaviour_logits by {err:.3g}")
+        return None
