@@ -117,3 +117,38 @@ def unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
             node = node.setdefault(p, {})
         node[parts[-1]] = v
     return out
+
+
+@dataclass(frozen=True)
+class ObsRule:
+    """One observation field: dtype and shape of one item; ``low``/``high`` float64 arrays of
+    that shape where a bound is finite (``None`` when no element has a finite bound, or the
+    dtype's own range already enforces it, as for uint8 images in [0, 255])."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    low: np.ndarray | None = None
+    high: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why a chunk or an unroll was refused: ``reason`` (a short counter name) and a one-line ``detail``."""
+
+    reason: str
+    detail: str
+
+
+def obs_rules_from_space(space: Any, prefix: str = "obs") -> dict[str, ObsRule]:
+    """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those),
+    from :func:`obs_fields` (the dtypes zenrl ships them in)."""
+    out: dict[str, ObsRule] = {}
+    for name, f in obs_fields(space, prefix).items():
+        dtype, shape, low, high = f.spec.dtype, f.spec.shape, f.low, f.high
+        if dtype == "uint8" and (low <= 0).all() and (high >= 255).all():
+            out[name] = ObsRule(dtype, shape)  # the dtype's own range is the bound
+        elif not (np.isfinite(low).any() or np.isfinite(high).any()):
+            out[name] = ObsRule(dtype, shape)
+        else:
+            out[name] = ObsRule(dtype, shape, low, high)
+    return out

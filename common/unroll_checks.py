@@ -11,60 +11,18 @@ same way).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
 from zenrl.common.protocol import Unroll
-
-
-@dataclass(frozen=True)
-class Rejection:
-    """Why an unroll was refused: ``reason`` (a short counter name) and a one-line ``detail``."""
-
-    reason: str
-    detail: str
-
-
-@dataclass(frozen=True)
-class FieldRule:
-    """One observation field: the dtype and shape of one observation, and float64 ``low`` /
-    ``high`` arrays of that shape (None when the dtype's own range is the only bound)."""
-
-    dtype: np.dtype
-    shape: tuple[int, ...]
-    low: np.ndarray | None = None
-    high: np.ndarray | None = None
-
-
-def obs_rules(space: Any, prefix: str = "obs") -> dict[str, FieldRule]:
-    """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those)
-    in the dtypes zenrl ships them in (uint8 Box stays uint8, other Box float32, Discrete int64)."""
-    import gymnasium as gym  # the learner has it; importing this module does not need it
-
-    if isinstance(space, gym.spaces.Dict):
-        out: dict[str, FieldRule] = {}
-        for k, sub in space.spaces.items():
-            out.update(obs_rules(sub, f"{prefix}/{k}"))
-        return out
-    if isinstance(space, gym.spaces.Discrete):
-        lo = float(space.start)
-        return {prefix: FieldRule(np.dtype(np.int64), (), np.array(lo), np.array(lo + int(space.n) - 1))}
-    if isinstance(space, gym.spaces.Box):
-        dtype = np.dtype(np.uint8) if space.dtype == np.uint8 else np.dtype(np.float32)
-        low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape).copy()
-        high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape).copy()
-        if not (np.isfinite(low).any() or np.isfinite(high).any()):
-            return {prefix: FieldRule(dtype, tuple(space.shape))}
-        return {prefix: FieldRule(dtype, tuple(space.shape), low, high)}
-    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+from zenrl.common.specs import ObsRule, Rejection, obs_rules_from_space
 
 
 class UnrollChecker:
     """Checks an :class:`Unroll` against the env's spec and the run's bounds.
 
-    ``rules``: the observation fields (:func:`obs_rules`); ``n_actions``: actions in
+    ``rules``: the observation fields (:func:`~zenrl.common.specs.obs_rules_from_space`); ``n_actions``: actions in
     ``0..n_actions-1``; ``max_abs_reward``: bound on ``|reward|``; ``unroll_length``: the T every
     unroll must have (None: any); ``min_logp``: behaviour log-probabilities must lie in
     ``[min_logp, logp_tolerance]`` (a probability, with float32 rounding slack);
@@ -72,7 +30,7 @@ class UnrollChecker:
     With behaviour logits, their log-softmax at the action taken must match ``behaviour_logp``
     within ``logp_match_tolerance``."""
 
-    def __init__(self, rules: Mapping[str, FieldRule], n_actions: int, max_abs_reward: float,
+    def __init__(self, rules: Mapping[str, ObsRule], n_actions: int, max_abs_reward: float,
                  unroll_length: int | None = None, min_logp: float = -1000.0, logp_tolerance: float = 1e-4,
                  logp_match_tolerance: float = 1e-3, check_obs_bounds: bool = True) -> None:
         if n_actions < 1:
@@ -92,7 +50,7 @@ class UnrollChecker:
 
         if not isinstance(action_space, gym.spaces.Discrete):
             raise ValueError(f"zenrl's IMPALA needs a Discrete action space, got {action_space}")
-        return cls(obs_rules(observation_space), int(action_space.n), max_abs_reward, **kw)
+        return cls(obs_rules_from_space(observation_space), int(action_space.n), max_abs_reward, **kw)
 
     def check(self, u: Unroll) -> Rejection | None:
         """None if the learner may train on ``u``, else the first rule it breaks."""
@@ -105,7 +63,7 @@ class UnrollChecker:
             a = u.obs[k]
             if a.dtype != rule.dtype or a.shape[1:] != rule.shape:
                 return Rejection("obs_dtype", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says "
-                                              f"{rule.dtype.name}{list(rule.shape)}")
+                                              f"{rule.dtype}{list(rule.shape)}")
         a = u.action
         if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
             bad = int(a.min()) if int(a.min()) < 0 else int(a.max())

@@ -20,7 +20,9 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from zenrl.common.specs import obs_fields
+from zenrl.common.specs import ObsRule, Rejection, obs_rules_from_space
+
+__all__ = ["ChunkChecker", "ObsRule", "Quarantine", "Rejection", "obs_rules_from_space"]
 
 #: Fields every Ape-X chunk carries besides the observations (dtype of one item, shape ()).
 SCALAR_FIELDS = {"action": "int64", "reward": "float32", "n": "uint8", "terminated": "bool"}
@@ -43,41 +45,6 @@ def _as_bound(b: np.ndarray, dtype: str, direction: int) -> np.ndarray:
         return out
     info = np.iinfo(dtype)
     return np.clip(np.floor(b) if direction > 0 else np.ceil(b), info.min, info.max).astype(dtype)
-
-
-@dataclass(frozen=True)
-class ObsRule:
-    """One observation field: dtype and shape of one item; ``low``/``high`` float64 arrays of
-    that shape where a bound is finite (``None`` when no element has a finite bound, or the
-    dtype's own range already enforces it, as for uint8 images in [0, 255])."""
-
-    dtype: str
-    shape: tuple[int, ...]
-    low: np.ndarray | None = None
-    high: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class Rejection:
-    """Why a chunk was refused: ``reason`` (a short counter name) and a one-line ``detail``."""
-
-    reason: str
-    detail: str
-
-
-def obs_rules_from_space(space: Any, prefix: str = "obs") -> dict[str, ObsRule]:
-    """Rules for the flat observation fields of a gymnasium space (Box, Discrete, Dict of those),
-    from :func:`zenrl.common.specs.obs_fields` (the dtypes zenrl ships them in)."""
-    out: dict[str, ObsRule] = {}
-    for name, f in obs_fields(space, prefix).items():
-        dtype, shape, low, high = f.spec.dtype, f.spec.shape, f.low, f.high
-        if dtype == "uint8" and (low <= 0).all() and (high >= 255).all():
-            out[name] = ObsRule(dtype, shape)  # the dtype's own range is the bound
-        elif not (np.isfinite(low).any() or np.isfinite(high).any()):
-            out[name] = ObsRule(dtype, shape)
-        else:
-            out[name] = ObsRule(dtype, shape, low, high)
-    return out
 
 
 class ChunkChecker:

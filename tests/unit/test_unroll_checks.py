@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from zenrl.common import protocol as P
-from zenrl.common.unroll_checks import UnrollChecker, obs_rules
+from zenrl.common.specs import obs_rules_from_space as obs_rules
+from zenrl.common.unroll_checks import UnrollChecker
 
 T = 4
 BOX = gym.spaces.Box(low=np.array([-1.0, -2.0, -np.inf], np.float32), high=np.array([1.0, 2.0, np.inf], np.float32))
@@ -92,7 +93,8 @@ def test_obs_bounds_can_be_skipped():
 
 def test_dict_space_with_image_and_discrete():
     rules = obs_rules(DICT)
-    assert rules["obs/image"].low is not None and rules["obs/cell"].dtype == np.int64
+    # a uint8 image in [0, 255] is bounded by its dtype alone; a Discrete by its range
+    assert rules["obs/image"].low is None and rules["obs/cell"].low is not None and rules["obs/cell"].dtype == "int64"
     chk = UnrollChecker(rules, n_actions=2, max_abs_reward=1.0)
     obs = {"obs/image": np.full((T + 1, 2, 3), 255, np.uint8), "obs/cell": np.full(T + 1, 5, np.int64),
            "obs/pose": np.zeros((T + 1, 2), np.float32)}
