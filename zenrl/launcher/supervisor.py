@@ -108,7 +108,8 @@ class Child:
 
 
 class Launcher:
-    def __init__(self, cfg: RunConfig, resume: bool = False) -> None:
+    def __init__(self, cfg: RunConfig, resume: bool = False, exporter_port: int | None = None) -> None:
+        self.exporter_port = exporter_port  # also start `zenrl exporter` there (Prometheus metrics)
         self.run_id = cfg.run_id or new_run_id(cfg)
         self.cfg = cfg.model_copy(update={"run_id": self.run_id})
         self.resume = resume
@@ -176,6 +177,8 @@ class Launcher:
             kids.append(Child(f"actor-{i}", "actor", ["--id", f"actor-{i}", "--slot", str(i)]))
         if self.cfg.evaluator.enabled:
             kids.append(Child("evaluator", "evaluator", []))
+        if self.exporter_port is not None:
+            kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port)]))
         return kids
 
     def _supervise(self) -> None:
@@ -201,7 +204,7 @@ class Launcher:
     def _terminate(self) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
         # the actors to save its checkpoint, so it stops with them (one exit wait instead of two)
-        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner")],
+        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner", "exporter")],
                  [c for c in self.children if c.role == "replay"]]
         for group in order:
             for c in group:
@@ -356,10 +359,10 @@ class Launcher:
         write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())
 
 
-def launch(cfg: RunConfig, resume_dir: str | None = None) -> int:
+def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | None = None) -> int:
     """Entry point of ``zenrl run``: the env is checked before anything is created on disk."""
     if resume_dir is not None:
         rd = Path(resume_dir)
         cfg = cfg.model_copy(update={"run_id": rd.name, "runs_dir": str(rd.parent)})
     check_env(cfg)
-    return Launcher(cfg, resume=resume_dir is not None).run()
+    return Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port).run()
