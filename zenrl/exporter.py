@@ -113,7 +113,7 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "capacity": ("capacity_items", GAUGE, "Transitions the replay can hold."),
         "bytes": ("size_bytes", GAUGE, "Bytes of stored transitions."),
         "inserted_total": ("inserted_items", COUNTER, "Transitions inserted."),
-        "inserts_per_s": ("inserts_per_second", GAUGE, "Chunks inserted per second over the replay's last interval."),
+        "inserts_per_s": ("inserted_items_per_second", GAUGE, "Transitions inserted per second over the replay's last interval."),
         "sample_batches_per_s": ("sample_batches_per_second", GAUGE, "Sample batches served per second."),
         "sample_batches_total": ("sampled_batches", COUNTER, "Sample batches served."),
         "stale_priority_updates": ("stale_priority_updates", COUNTER, "Priority updates for evicted items."),

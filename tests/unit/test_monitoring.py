@@ -18,6 +18,7 @@ from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from zenrl.common import protocol as P
+from tests.unit.test_k8s_manifests import tree  # noqa: F401 (fixture)
 from zenrl.exporter import STATS, RunState, registry_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -258,3 +259,71 @@ def test_zenrl_run_starts_the_exporter_as_a_child(tmp_path):
     kids = {c.name: c for c in Launcher(cfg, exporter_port=9999)._plan()}
     assert kids["exporter"].role == "exporter" and kids["exporter"].args == ["--port", "9999"]
     assert "exporter" not in {c.name for c in Launcher(cfg)._plan()}
+
+
+def _kustomize(overlay: str) -> list[dict]:
+    from tests.unit.test_k8s_manifests import _kubectl
+
+    p = subprocess.run([_kubectl(), "kustomize", str(ROOT / "deploy/k8s/overlays" / overlay)], capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return [d for d in yaml.safe_load_all(p.stdout) if d]
+
+
+def test_k8s_exporter_is_scraped_by_annotations_and_service_monitor():
+    from tests.unit.test_k8s_manifests import OLDEST
+    from zenrl.cli import build_parser
+
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate is not installed (test extra)")
+    docs = _kustomize("monitoring")
+    kinds = {(d["kind"], d["metadata"]["name"]) for d in docs}
+    assert {("ServiceMonitor", "zenrl-exporter"), ("PrometheusRule", "zenrl"), ("Deployment", "zenrl-exporter"),
+            ("Service", "zenrl-exporter")} <= kinds
+    for d in docs:  # the operator's CRDs are not in the schemas; everything else validates strictly
+        if not d["apiVersion"].startswith("monitoring.coreos.com/"):
+            kv.validate(d, OLDEST, strict=True)
+    svc = next(d for d in docs if d["kind"] == "Service" and d["metadata"]["name"] == "zenrl-exporter")
+    dep = next(d for d in docs if d["kind"] == "Deployment" and d["metadata"]["name"] == "zenrl-exporter")
+    c = dep["spec"]["template"]["spec"]["containers"][0]
+    args = build_parser().parse_args(c["args"])
+    port = next(p for p in c["ports"] if p["name"] == "metrics")["containerPort"]
+    assert args.command == "exporter" and args.port == port
+    ann = svc["metadata"]["annotations"]
+    assert ann["prometheus.io/scrape"] == "true" and int(ann["prometheus.io/port"]) == port
+    assert svc["spec"]["selector"].items() <= dep["spec"]["template"]["metadata"]["labels"].items()
+    sm = next(d for d in docs if d["kind"] == "ServiceMonitor")
+    assert sm["spec"]["selector"]["matchLabels"].items() <= svc["metadata"]["labels"].items()
+    assert {e["port"] for e in sm["spec"]["endpoints"]} <= {p["name"] for p in svc["spec"]["ports"]}
+
+
+def test_k8s_secured_exporter_observes_with_the_monitor_role(tree):
+    from tests.unit.test_k8s_manifests import _generated, render
+
+    docs = render(tree, "secured")
+    spec = next(d for d in docs if d["kind"] == "Deployment" and d["metadata"]["name"] == "zenrl-exporter")
+    spec = spec["spec"]["template"]["spec"]
+    used = {v["secret"]["secretName"] for v in spec["volumes"] if "secret" in v}
+    assert used == {_generated(docs, "zenrl-ca"), _generated(docs, "zenrl-client-monitor")}
+    env = {e["name"]: e["value"] for e in spec["containers"][0]["env"]}
+    assert env["ZENRL__TRANSPORT__CLIENT_CONFIG"] == "/zenoh-client/client-monitor.json5"
+
+
+def test_compose_monitoring_profile():
+    from tests.integration.test_compose import COMPOSE, load_compose, parse_volume, zenrl_services
+    from zenrl.cli import build_parser
+
+    model = load_compose(COMPOSE)
+    services = model["services"]
+    for name in ("exporter", "prometheus", "grafana"):
+        assert services[name]["profiles"] == ["monitoring"], name
+    exporter = zenrl_services(model, profiles=("monitoring",))["exporter"]
+    args = build_parser().parse_args(exporter["command"])
+    assert args.command == "exporter" and f"exporter:{args.port}" in (MON / "prometheus.yml").read_text()
+    mounts = dict(parse_volume(v)[::-1] for v in services["prometheus"]["volumes"])
+    assert (ROOT / mounts["/etc/prometheus/rules.yml"]).resolve() == RULES
+    assert (ROOT / mounts["/etc/prometheus/prometheus.yml"]).resolve() == MON / "prometheus.yml"
+    mounts = dict(parse_volume(v)[::-1] for v in services["grafana"]["volumes"])
+    assert (ROOT / mounts["/var/lib/grafana/dashboards"]).resolve() == DASHBOARD.parent
+    assert (ROOT / mounts["/etc/grafana/provisioning"]).resolve() == MON / "grafana" / "provisioning"
+    provider = yaml.safe_load((MON / "grafana/provisioning/dashboards/zenrl.yml").read_text())["providers"][0]
+    assert provider["options"]["path"] == "/var/lib/grafana/dashboards"
