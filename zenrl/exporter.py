@@ -50,6 +50,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector, CollectorRegistry
 
 from zenrl.common import protocol as P
+from zenrl.common.errors import ConfigError
 
 log = logging.getLogger("zenrl.exporter")
 
@@ -429,7 +430,10 @@ def serve(cfg: Any, run_id: str, stop: threading.Event, port: int = DEFAULT_PORT
         node.subscribe(keys.stats_all, state.on_stats)
         node.subscribe(keys.eval, state.on_eval)
         node.subscribe(keys.episodes_all, state.on_episodes)
-        server, thread = start_http_server(port, addr=host, registry=registry_for(state))
+        try:
+            server, thread = start_http_server(port, addr=host, registry=registry_for(state))
+        except OSError as e:  # a busy port is the operator's to fix: no restart loop
+            raise ConfigError(f"exporter: cannot listen on {host}:{port}: {e}") from None
         log.info("exporter of run %s serving http://%s:%d/metrics", run_id, host, port)
         try:
             poll_alive(node, keys, state, stop, poll_s)

@@ -257,7 +257,9 @@ def test_zenrl_run_starts_the_exporter_as_a_child(tmp_path):
     assert (args.port, args.expected_actors) == (9000, 3)
     cfg = load_config(str(ROOT / "configs/cartpole_apex.yaml"), [f"runs_dir={tmp_path}", "run_id=x"])
     kids = {c.name: c for c in Launcher(cfg, exporter_port=9999)._plan()}
-    assert kids["exporter"].role == "exporter" and kids["exporter"].args == ["--port", "9999"]
+    assert kids["exporter"].role == "exporter" and kids["exporter"].args == ["--port", "9999", "--host", "127.0.0.1"]
+    cfg = cfg.model_copy(update={"transport": cfg.transport.model_copy(update={"listen": ["tcp/0.0.0.0:7447"]})})
+    assert Launcher(cfg, exporter_port=1)._plan()[-1].args == ["--port", "1", "--host", "0.0.0.0"]
     assert "exporter" not in {c.name for c in Launcher(cfg)._plan()}
 
 
@@ -327,3 +329,19 @@ def test_compose_monitoring_profile():
     assert (ROOT / mounts["/etc/grafana/provisioning"]).resolve() == MON / "grafana" / "provisioning"
     provider = yaml.safe_load((MON / "grafana/provisioning/dashboards/zenrl.yml").read_text())["providers"][0]
     assert provider["options"]["path"] == "/var/lib/grafana/dashboards"
+
+
+def test_zenrl_run_refuses_a_busy_exporter_port(tmp_path):
+    import socket
+
+    from zenrl.common.config import load_config
+    from zenrl.common.errors import ConfigError
+    from zenrl.launcher import launch
+
+    cfg = load_config(str(ROOT / "configs/cartpole_apex.yaml"), [f"runs_dir={tmp_path}", "run_id=busy"])
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("0.0.0.0", 0))
+        s.listen(1)
+        with pytest.raises(ConfigError, match="in use"):
+            launch(cfg, exporter_port=s.getsockname()[1])
+    assert not (tmp_path / "busy").exists(), "nothing is created before the checks pass"

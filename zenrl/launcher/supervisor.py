@@ -161,8 +161,9 @@ class Launcher:
         # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
         # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
-        if self.placement is not None and c.role in self.placement:
-            env.update(self.placement[c.role].env())
+        placed = "evaluator" if c.role == "exporter" else c.role  # the exporter: off the learner's CPUs
+        if self.placement is not None and placed in self.placement:
+            env.update(self.placement[placed].env())
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
@@ -177,8 +178,9 @@ class Launcher:
             kids.append(Child(f"actor-{i}", "actor", ["--id", f"actor-{i}", "--slot", str(i)]))
         if self.cfg.evaluator.enabled:
             kids.append(Child("evaluator", "evaluator", []))
-        if self.exporter_port is not None:
-            kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port)]))
+        if self.exporter_port is not None:  # reachable where the run's router is (loopback by default)
+            host = _split_endpoint(self.cfg.transport.listen[0])[1].strip("[]") or "0.0.0.0"
+            kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port), "--host", host]))
         return kids
 
     def _supervise(self) -> None:
@@ -365,4 +367,6 @@ def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | N
         rd = Path(resume_dir)
         cfg = cfg.model_copy(update={"run_id": rd.name, "runs_dir": str(rd.parent)})
     check_env(cfg)
+    if exporter_port is not None and not _port_free("0.0.0.0", exporter_port):
+        raise ConfigError(f"--exporter-port {exporter_port}: the port is in use")
     return Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port).run()
