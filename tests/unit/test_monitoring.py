@@ -241,9 +241,15 @@ def test_grafana_provisioning_names_the_dashboard_data_source():
 
 
 def test_prometheusrule_matches_rules_file():
+    import importlib.util
+
     doc = yaml.safe_load(PROM_RULE.read_text())
     assert doc["kind"] == "PrometheusRule"
     assert doc["spec"] == yaml.safe_load(RULES.read_text())
+    spec = importlib.util.spec_from_file_location("prometheusrule", MON / "prometheusrule.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert PROM_RULE.read_text() == gen.render(), "run python deploy/monitoring/prometheusrule.py"
 
 
 def test_zenrl_run_starts_the_exporter_as_a_child(tmp_path):
