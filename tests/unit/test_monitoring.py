@@ -351,3 +351,23 @@ def test_zenrl_run_refuses_a_busy_exporter_port(tmp_path):
         with pytest.raises(ConfigError, match="in use"):
             launch(cfg, exporter_port=s.getsockname()[1])
     assert not (tmp_path / "busy").exists(), "nothing is created before the checks pass"
+
+
+def test_exporter_cost_bench_plan_and_rate(tmp_path):
+    import sys
+
+    p = subprocess.run([sys.executable, str(ROOT / "bench/exporter_cost.py"), "--dry-run", "--rounds", "2"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout.splitlines()[-1])
+    assert out["order"] == ["off", "on", "on", "off"] and "--exporter-port" in out["argv_example"]
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from exporter_cost import updates_rate
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    lines = [{"time": 100.0 + t, "source": "learner", "step": 0, "updates": 50.0 * t} for t in range(0, 30, 2)]
+    lines.insert(3, {"time": 105.0, "source": "eval", "step": 0, "return_mean": 3.0})
+    (tmp_path / "m.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    r = updates_rate(tmp_path / "m.jsonl", warmup_s=10.0)
+    assert r["updates_per_s"] == pytest.approx(50.0) and r["window_s"] == pytest.approx(18.0)
