@@ -371,3 +371,15 @@ def test_exporter_cost_bench_plan_and_rate(tmp_path):
     (tmp_path / "m.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
     r = updates_rate(tmp_path / "m.jsonl", warmup_s=10.0)
     assert r["updates_per_s"] == pytest.approx(50.0) and r["window_s"] == pytest.approx(18.0)
+
+
+def test_k8s_exporter_pod_is_hardened():
+    docs = _kustomize("plain")
+    spec = next(d for d in docs if d["kind"] == "Deployment" and d["metadata"]["name"] == "zenrl-exporter")
+    spec = spec["spec"]["template"]["spec"]
+    assert spec["automountServiceAccountToken"] is False
+    assert spec["securityContext"]["runAsNonRoot"] and spec["securityContext"]["seccompProfile"]["type"] == "RuntimeDefault"
+    sc = spec["containers"][0]["securityContext"]
+    assert sc["allowPrivilegeEscalation"] is False and sc["readOnlyRootFilesystem"] is True
+    assert sc["capabilities"]["drop"] == ["ALL"]
+    assert "/tmp" in {m["mountPath"] for m in spec["containers"][0]["volumeMounts"]}
