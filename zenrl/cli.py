@@ -154,6 +154,13 @@ def cmd_evaluator(args: argparse.Namespace) -> int:
     return _run_role(args, "evaluator", lambda c, r, s: main(c, r, s))
 
 
+def cmd_exporter(args: argparse.Namespace) -> int:
+    from zenrl.exporter import serve
+
+    return _run_role(args, "exporter", lambda c, r, s: serve(c, r, s, args.port, args.host, args.expected_actors,
+                                                             args.poll_s))
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     from zenrl.common.transport import install_stop_signals, open_router
 
@@ -189,7 +196,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if not args.config:
             args.config = os.path.join(args.resume, "config.yaml")
     cfg = resolve(args, extra)
-    return launch(cfg, resume_dir=args.resume)
+    return launch(cfg, resume_dir=args.resume, exporter_port=args.exporter_port)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -333,6 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--actors", type=int, help="number of actor processes (actor.num_actors)")
     s.add_argument("--resume", metavar="RUN_DIR", help="resume the run in RUN_DIR (runs/<id>) from its newest checkpoint")
     s.add_argument("--no-progress", action="store_true", help="no live progress display")
+    s.add_argument("--exporter-port", type=int, metavar="PORT",
+                   help="also start `zenrl exporter` on this port: Prometheus metrics of the run (docs/monitoring.md)")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("replay", help="the prioritized replay service", epilog=_options_epilog("replay"), formatter_class=fmt)
@@ -359,6 +368,16 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=fmt)
     _add_config_args(s)
     s.set_defaults(func=cmd_evaluator)
+
+    s = sub.add_parser("exporter", help="Prometheus metrics of a run's stats and health on an HTTP port",
+                       epilog=_options_epilog(), formatter_class=fmt)
+    _add_config_args(s)
+    s.add_argument("--port", type=int, default=9464, help="HTTP port of /metrics")
+    s.add_argument("--host", default="0.0.0.0", help="address to listen on (default every interface)")
+    s.add_argument("--expected-actors", type=int, default=None,
+                   help="actor processes the run should have (default actor.num_actors): zenrl_actors_expected")
+    s.add_argument("--poll-s", type=float, default=1.0, help="how often the liveliness tokens are polled (seconds)")
+    s.set_defaults(func=cmd_exporter)
 
     s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
     s.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")

@@ -107,7 +107,8 @@ class Child:
 
 
 class Launcher:
-    def __init__(self, cfg: RunConfig, resume: bool = False) -> None:
+    def __init__(self, cfg: RunConfig, resume: bool = False, exporter_port: int | None = None) -> None:
+        self.exporter_port = exporter_port  # also start `zenrl exporter` there (Prometheus metrics)
         self.run_id = cfg.run_id or new_run_id(cfg)
         self.cfg = cfg.model_copy(update={"run_id": self.run_id})
         self.resume = resume
@@ -164,8 +165,9 @@ class Launcher:
         # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
         # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
-        if self.placement is not None and c.role in self.placement:
-            env.update(self.placement[c.role].env())
+        placed = "evaluator" if c.role == "exporter" else c.role  # the exporter: off the learner's CPUs
+        if self.placement is not None and placed in self.placement:
+            env.update(self.placement[placed].env())
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
@@ -180,6 +182,9 @@ class Launcher:
             kids.append(Child(f"actor-{i}", "actor", ["--id", f"actor-{i}", "--slot", str(i)]))
         if self.cfg.evaluator.enabled:
             kids.append(Child("evaluator", "evaluator", []))
+        if self.exporter_port is not None:  # reachable where the run's router is (loopback by default)
+            host = _split_endpoint(self.cfg.transport.listen[0])[1].strip("[]") or "0.0.0.0"
+            kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port), "--host", host]))
         return kids
 
     def _supervise(self) -> None:
@@ -205,7 +210,7 @@ class Launcher:
     def _terminate(self) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
         # the actors to save its checkpoint, so it stops with them (one exit wait instead of two)
-        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner")],
+        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner", "exporter")],
                  [c for c in self.children if c.role == "replay"]]
         for group in order:
             for c in group:
@@ -360,10 +365,12 @@ class Launcher:
         write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())
 
 
-def launch(cfg: RunConfig, resume_dir: str | None = None) -> int:
+def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | None = None) -> int:
     """Entry point of ``zenrl run``: the env is checked before anything is created on disk."""
     if resume_dir is not None:
         rd = Path(resume_dir)
         cfg = cfg.model_copy(update={"run_id": rd.name, "runs_dir": str(rd.parent)})
     check_env(cfg)
-    return Launcher(cfg, resume=resume_dir is not None).run()
+    if exporter_port is not None and not _port_free("0.0.0.0", exporter_port):
+        raise ConfigError(f"--exporter-port {exporter_port}: the port is in use")
+    return Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port).run()
