@@ -49,6 +49,7 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "selfplay", "network", "env", "transport",
               "learner.gamma"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "network", "env", "transport"),
+    "exporter": ("run_id", "transport", "actor.num_actors"),
 }
 
 
@@ -370,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_evaluator)
 
     s = sub.add_parser("exporter", help="Prometheus metrics of a run's stats and health on an HTTP port",
-                       epilog=_options_epilog(), formatter_class=fmt)
+                       epilog=_options_epilog("exporter"), formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--port", type=int, default=9464, help="HTTP port of /metrics")
     s.add_argument("--host", default="0.0.0.0", help="address to listen on (default every interface)")
