@@ -23,9 +23,9 @@ forward pass made when acting on s, as the Ape-X actor does (:mod:`zenrl.actor.n
 sequence closed by a truncation bootstraps from its final observation, which nobody acted on:
 for those the caller's ``final_q_fn`` runs one extra step.
 
-Steps live in a ring of m+1 rows shared by the envs (a row per batched step); sequences are
-gathered from it with one fancy index per field when they close. Open sequences are dropped when
-the actor stops.
+Steps live in a ring of m + block_steps rows shared by the envs (a row per batched step);
+closed sequences are gathered from it every ``block_steps`` steps with one fancy index per field.
+:meth:`SequenceBuilder.flush` gathers the closed ones at shutdown; open ones are dropped.
 """
 
 from __future__ import annotations
@@ -60,23 +60,27 @@ class SequenceBlock:
 
 
 class SequenceBuilder:
-    """Records one batched step per :meth:`add`; returns the sequences it closed, or None."""
+    """Records one batched step per :meth:`add`; every ``block_steps`` steps :meth:`add` returns
+    the sequences closed since the last block (a :class:`SequenceBlock`, or None if none did):
+    the gathering and the priorities' ~40 numpy calls then cost once per block, not per step."""
 
     def __init__(self, num_envs: int, length: int, n_step: int, gamma: float, burn_in: int = 0,
-                 eta: float = 0.9, eps: float = 1e-3) -> None:
+                 eta: float = 0.9, eps: float = 1e-3, block_steps: int = 1) -> None:
         if length < 2 or length % 2:
             raise ValueError(f"sequence length must be even and >= 2, got {length}")
-        if not 0 <= burn_in <= length // 2 or n_step < 1:
-            raise ValueError(f"need 0 <= burn_in <= length/2 and n_step >= 1, got {burn_in}, {n_step}")
-        self.E, self.m, self.P, self.n = num_envs, length, length // 2, n_step
+        if not 0 <= burn_in <= length // 2 or n_step < 1 or block_steps < 1:
+            raise ValueError(f"need 0 <= burn_in <= length/2, n_step >= 1, block_steps >= 1, "
+                             f"got {burn_in}, {n_step}, {block_steps}")
+        self.E, self.m, self.P, self.n, self.K = num_envs, length, length // 2, n_step, block_steps
         self.gamma, self.burn_in, self.eta, self.eps = gamma, burn_in, eta, eps
-        self.W = length + 1                       # ring rows: a sequence's steps and s_m
+        self.W = length + block_steps             # ring rows: a sequence's steps, s_m, the wait
         self.t = 0                                # batched steps recorded
         self.ep = np.zeros(num_envs, np.int64)    # episode step of the current step, per env
         self._ring: dict[str, np.ndarray] | None = None
-
-    def _alloc(self, fields: dict[str, np.ndarray]) -> None:
-        self._ring = {k: np.zeros((self.W,) + v.shape, v.dtype) for k, v in fields.items()}
+        self._final: dict[str, np.ndarray] = {}   # s_len and its q where an episode ended, by row
+        # closed sequences not yet gathered, per step: env, start, length, ended, and t0 (the
+        # batched step of s_0, its ring row)
+        self._pending: list[tuple[np.ndarray, ...]] = []
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, state: tuple[np.ndarray, np.ndarray],
             actions: np.ndarray, rewards: np.ndarray, next_obs: dict[str, np.ndarray],
@@ -90,54 +94,65 @@ class SequenceBuilder:
                   "h": state[0], "c": state[1], "action": actions, "reward": rewards,
                   "terminated": terminated, "truncated": truncated}
         if self._ring is None:
-            self._alloc({k: np.asarray(v) for k, v in fields.items()})
+            self._ring = {k: np.zeros((self.W,) + np.shape(v), np.asarray(v).dtype) for k, v in fields.items()}
+            self._final = {k: np.zeros_like(v) for k, v in self._ring.items() if k == "q" or k.startswith("o:")}
         row = self.t % self.W
         for k, v in fields.items():
             self._ring[k][row] = v
         ep, P, m = self.ep, self.P, self.m
         done = terminated | truncated
+        if done.any():
+            idx = done.nonzero()[0]
+            for k, v in next_obs.items():
+                self._final["o:" + k][row, idx] = v[idx]
+            self._final["q"][row, idx] = 0.0                 # terminated: nothing to bootstrap
+            tr = truncated.nonzero()[0]
+            if tr.size:
+                self._final["q"][row, tr] = final_q_fn(tr)
         full = (ep >= m) & ((ep - m) % P == 0)               # [ep-m, ep) is complete, s_m = s_t
         s1 = ep // P * P
         s0 = np.where(s1 >= P, s1 - P, s1)                   # the sequence an episode end closes
-        env = np.concatenate([full.nonzero()[0], done.nonzero()[0]])
-        block = None
-        if env.size:
-            n_full = int(full.sum())
+        if full.any() or done.any():
+            env = np.concatenate([full.nonzero()[0], done.nonzero()[0]])
             start = np.concatenate([ep[full] - m, s0[done]])
-            length = np.concatenate([np.full(n_full, m), ep[done] - s0[done] + 1])
-            block = self._gather(env, start, length, n_full, next_obs, final_q_fn)
+            ended = np.arange(env.size) >= int(full.sum())
+            length = np.where(ended, ep[env] - start + 1, m)
+            self._pending.append((env, start, length, ended, self.t - (ep[env] - start)))
         self.ep = np.where(done, 0, ep + 1)
         self.t += 1
-        return block
+        return self.flush() if self.t % self.K == 0 else None
 
-    def _gather(self, env: np.ndarray, start: np.ndarray, length: np.ndarray, n_full: int,
-                next_obs: dict[str, np.ndarray], final_q_fn: FinalQFn) -> SequenceBlock:
+    def flush(self) -> SequenceBlock | None:
+        """The sequences closed since the last block (e.g. at shutdown), or None."""
+        if not self._pending:
+            return None
+        env, start, length, ended, t0 = (np.concatenate(a) for a in zip(*self._pending))
+        self._pending = []
+        return self._gather(env, start, length, ended, t0)
+
+    def _gather(self, env: np.ndarray, start: np.ndarray, length: np.ndarray, ended: np.ndarray,
+                t0: np.ndarray) -> SequenceBlock:
         S, m = env.size, self.m
         pos = np.arange(m + 1)
-        rows = (self.t - (self.ep[env] - start)[:, None] + pos) % self.W      # [S, m+1]
+        rows = (t0[:, None] + pos) % self.W                                   # [S, m+1]
         obs_mask = pos <= length[:, None]                                     # [S, m+1]
         step_mask = pos[:m] < length[:, None]                                 # [S, m]
-        ended = np.arange(S) >= n_full
         e_end, l_end = env[ended], length[ended]
-        g = {k: v[rows, env[:, None]] for k, v in self._ring.items() if k not in ("h", "c")}
+        end_row = rows[ended, l_end - 1]
         data: dict[str, np.ndarray] = {}
-        for k, v in g.items():
-            if k.startswith("o:") or k == "q":
-                if ended.any():                      # s_len of an ended episode: its final obs
-                    v[ended, l_end] = next_obs[k[2:]][e_end] if k != "q" else 0.0
-                v[~obs_mask] = 0
-                data[k[2:] if k != "q" else k] = v
+        for k, v in self._ring.items():
+            if k in ("h", "c"):
+                data[k] = v[rows[:, 0], env]
+            elif k.startswith("o:") or k == "q":
+                g = v[rows, env[:, None]]
+                g[ended, l_end] = self._final[k][end_row, e_end]      # s_len of an ended episode
+                g[~obs_mask] = 0
+                data[k[2:] if k != "q" else k] = g
             else:
-                w = v[:, :m]
-                w[~step_mask] = 0
-                data[k] = w
+                g = v[rows[:, :m], env[:, None]]
+                g[~step_mask] = 0
+                data[k] = g
         q = data.pop("q")
-        trunc = ended & data["truncated"][np.arange(S), length - 1]
-        if trunc.any():
-            q[trunc, length[trunc]] = final_q_fn(env[trunc])
-        start_row = rows[:, 0]
-        data["h"] = self._ring["h"][start_row, env].copy()
-        data["c"] = self._ring["c"][start_row, env].copy()
         data["first"] = start == 0
         data["mask"] = step_mask
         data["action"] = data["action"].astype(np.int64)

@@ -14,12 +14,12 @@ EPISODES = [[2, 6, 7, 13, 3, 99], [3, 4, 12, 1, 9, 99], [20, 5, 6, 99], [1, 1, 8
 STEPS = 37
 
 
-def _run(builder_kw=None):
+def _run(builder_kw=None, block_steps=1):
     """Drive the builder with scripted episodes; obs = (env, episode, step) and an image whose
     pixels are the step; returns the blocks and the record of what the actor saw."""
     rng = np.random.default_rng(0)
     E = len(EPISODES)
-    b = SequenceBuilder(E, M, N, GAMMA, **(builder_kw or {"burn_in": K}))
+    b = SequenceBuilder(E, M, N, GAMMA, block_steps=block_steps, **(builder_kw or {"burn_in": K}))
     epi, step = np.zeros(E, int), np.zeros(E, int)
     rec = {}          # (env, episode, step) -> dict(q, h, c, action, reward)
     finals = {}       # (env, episode) -> q of the final observation (truncated episodes)
@@ -29,7 +29,7 @@ def _run(builder_kw=None):
         return {"obs": np.stack([e_idx, ep_idx, st], 1).astype(np.float32),
                 "obs/img": np.repeat(np.asarray(st, np.uint8)[:, None, None], 2, 1).repeat(2, 2)}
 
-    for _ in range(STEPS):
+    for i in range(STEPS):
         envs = np.arange(E)
         obs = obs_of(envs, epi, step)
         q = rng.normal(size=(E, A)).astype(np.float32) * 3
@@ -54,8 +54,13 @@ def _run(builder_kw=None):
 
         blk = b.add(obs, q, (h, c), act, rew, next_obs, term, trunc, final_q)
         if blk is not None:
+            assert (i + 1) % block_steps == 0
             blocks.append(blk)
         epi, step = np.where(done, epi + 1, epi), np.where(done, 0, step + 1)
+    last = b.flush()
+    if last is not None:
+        blocks.append(last)
+    assert b.flush() is None
     return blocks, rec, finals, calls, (epi, step)
 
 
@@ -78,8 +83,9 @@ def _expected(end_state):
     return out
 
 
-def test_boundaries_overlap_and_episodes():
-    blocks, rec, _, _, end_state = _run()
+@pytest.mark.parametrize("block_steps", [1, 5])
+def test_boundaries_overlap_and_episodes(block_steps):
+    blocks, rec, _, _, end_state = _run(block_steps=block_steps)
     got = []
     for blk in blocks:
         for i in range(len(blk)):
@@ -108,8 +114,9 @@ def test_boundaries_overlap_and_episodes():
     assert {1, 2, 3, 4, M} <= lengths      # episodes and tails shorter than m, and full ones
 
 
-def test_fields_state_and_padding():
-    blocks, rec, finals, _, _ = _run()
+@pytest.mark.parametrize("block_steps", [1, 5])
+def test_fields_state_and_padding(block_steps):
+    blocks, rec, finals, _, _ = _run(block_steps=block_steps)
     for blk in blocks:
         d = blk.data
         assert d["obs"].shape[1:] == (M + 1, 3) and d["obs/img"].shape[1:] == (M + 1, 2, 2)
@@ -145,9 +152,9 @@ def test_final_q_fn_only_for_truncations():
     assert sum(len(c) for c in calls) == n_trunc == len(finals)
 
 
-@pytest.mark.parametrize("burn_in", [0, K])
-def test_initial_priorities_match_loops(burn_in):
-    blocks, *_ = _run({"burn_in": burn_in})
+@pytest.mark.parametrize("burn_in,block_steps", [(0, 1), (K, 1), (K, 4)])
+def test_initial_priorities_match_loops(burn_in, block_steps):
+    blocks, *_ = _run({"burn_in": burn_in}, block_steps)
     for blk in blocks:
         d = blk.data
         for i in range(len(blk)):
