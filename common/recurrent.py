@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from zenrl.common.config import NetworkConfig
-from zenrl.common.networks import ObsEncoder, mlp
+from zenrl.common.networks import MLPEncoder, ObsEncoder, mlp
 from zenrl.common.specs import ArraySpec
 
 State = tuple[torch.Tensor, torch.Tensor]
@@ -110,8 +110,8 @@ class NumpyRecurrentQ:
 
     @staticmethod
     def of(net: nn.Module) -> "NumpyRecurrentQ | None":
-        if not isinstance(net, RecurrentQNetwork) or any(
-                type(e).__name__ != "MLPEncoder" for e in net.encoder.encoders.values()):
+        if not isinstance(net, RecurrentQNetwork) or not all(
+                isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
             return None
         return NumpyRecurrentQ(net)
 
