@@ -4,6 +4,9 @@ Importing this package registers:
 
 * ``zenrl/BurgerWar-v0``: a simulated Burger War match, vector observations;
 * ``zenrl/BurgerWarImage-v0``: the same plus the robot's camera image (``obs["image"]``);
+* ``zenrl/StatelessCartPole-v1``: CartPole-v1 with the velocities hidden (observation: cart
+  position and pole angle), a partially observable task for recurrent agents
+  (:mod:`zenrl.common.envs.stateless_cartpole`);
 * ``zenrl/Atari-v0``: an Atari game (``game="Pong"``) with the DQN preprocessing and a 4-frame
   stack (:func:`zenrl.common.envs.atari.make_atari`; needs the ``atari`` extra).
 
@@ -30,3 +33,8 @@ for _id, _kwargs in _ENVS.items():
 if "zenrl/Atari-v0" not in gymnasium.registry:
     gymnasium.register(id="zenrl/Atari-v0", entry_point="zenrl.common.envs.atari:make_atari",
                        max_episode_steps=None, disable_env_checker=True)
+
+if "zenrl/StatelessCartPole-v1" not in gymnasium.registry:
+    gymnasium.register(id="zenrl/StatelessCartPole-v1",
+                       entry_point="zenrl.common.envs.stateless_cartpole:StatelessCartPoleEnv",
+                       max_episode_steps=500, reward_threshold=475.0)
