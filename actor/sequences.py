@@ -132,7 +132,7 @@ class SequenceBuilder:
 
     def _gather(self, env: np.ndarray, start: np.ndarray, length: np.ndarray, ended: np.ndarray,
                 t0: np.ndarray) -> SequenceBlock:
-        S, m = env.size, self.m
+        m = self.m
         pos = np.arange(m + 1)
         rows = (t0[:, None] + pos) % self.W                                   # [S, m+1]
         obs_mask = pos <= length[:, None]                                     # [S, m+1]
