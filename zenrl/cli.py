@@ -289,7 +289,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     tools.quiet_native_imports()
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
     summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
-                             args.workers, args.seed, progress=not args.no_progress, policy=args.policy)
+                             args.workers, args.seed, progress=not args.no_progress, policy=args.policy,
+                             allow_exported=args.exported)
     Console(width=None if sys.stdout.isatty() else 120).print(tools.render_table(summary))
     if args.json:
         with open(args.json, "w") as f:
@@ -305,7 +306,7 @@ def cmd_play(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "play")
     tools.quiet_native_imports()
     out = tools.play(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.opponent, args.side,
-                     args.seed, args.fps, args.max_steps, args.speedup)
+                     args.seed, args.fps, args.max_steps, args.speedup, allow_exported=args.exported)
     tools.print_json_line(out)
     return 0
 
@@ -405,14 +406,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     def policy_args(s: argparse.ArgumentParser) -> None:
         s.add_argument("--checkpoint", required=True,
-                       help="a checkpoint file, a `zenrl export` file (evaluate and play; e.g. models/*.pt), "
-                            "or a run folder (runs/<id>) or checkpoints folder: its newest checkpoint")
+                       help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest "
+                            "checkpoint; with --exported (evaluate and play) also a `zenrl export` file, e.g. models/*.pt")
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
         s.add_argument("--env-kwargs", help="JSON object merged over the checkpoint's env.kwargs, e.g. '{\"match_time\": 60}'")
         s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
 
+    exported_help = ("allow `zenrl export` files as --checkpoint or opponents: they are TorchScript programs, "
+                     "which run code when loaded (only for files you trust; checkpoints load without running code)")
     s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates")
     policy_args(s)
+    s.add_argument("--exported", action="store_true", help=exported_help)
     s.add_argument("--opponents", default="cheese,teriyaki,clubhouse,waypoint",
                    help="comma-separated match opponents: bot names, or checkpoint / exported policy files "
                         "(e.g. an earlier snapshot); ignored for non-match envs")
@@ -427,6 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("play", help="render one greedy episode to a GIF or MP4")
     policy_args(s)
+    s.add_argument("--exported", action="store_true", help=exported_help)
     s.add_argument("--out", required=True, help="output file, .gif (pillow) or .mp4 (imageio-ffmpeg)")
     s.add_argument("--opponent", help="match opponent (default: drawn from the env's opponents)")
     s.add_argument("--side", choices=["red", "blue"], help="match side (default: the env's)")

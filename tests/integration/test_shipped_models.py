@@ -31,7 +31,7 @@ def test_models_folder_lists_its_files():
 def test_shipped_model_evaluates_and_wins(name, tmp_path):
     env_id, opponent, matches, need = MODELS[name]
     out = tmp_path / "eval.json"
-    r = subprocess.run([sys.executable, "-m", "zenrl.cli", "evaluate", "--checkpoint", str(ROOT / "models" / name),
+    r = subprocess.run([sys.executable, "-m", "zenrl.cli", "evaluate", "--exported", "--checkpoint", str(ROOT / "models" / name),
                         "--opponents", opponent, "--episodes", str(matches), "--workers", "1", "--seed", "1000000",
                         "--no-progress", "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]

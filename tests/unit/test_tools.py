@@ -270,12 +270,14 @@ def test_evaluate_exported_file_plays_the_same_episodes_as_its_checkpoint(ckpts,
     assert tools.is_exported(out) and not tools.is_exported(ckpts[which])
     kw = {"opponents": ["cheese"], "episodes": 2} if which == "match" else {"episodes": 3}
     ref = tools.evaluate(str(ckpts[which]), progress=False, seed=5, **kw)
-    mine = tools.evaluate(str(out), progress=False, seed=5, **kw)
+    with pytest.raises(ZenrlError, match="exported TorchScript policy.*--exported"):
+        tools.evaluate(str(out), progress=False, seed=5, **kw)  # a program: loaded only when asked for
+    mine = tools.evaluate(str(out), progress=False, seed=5, allow_exported=True, **kw)
     assert mine["env"] == ref["env"] and _episodes(mine) == _episodes(ref)
     if which == "match":
         assert {r["side"] for r in mine["results"]} == {"red", "blue"}
     with pytest.raises(ZenrlError, match="greedy only"):
-        tools.evaluate(str(out), progress=False, policy="sample", **kw)
+        tools.evaluate(str(out), progress=False, policy="sample", allow_exported=True, **kw)
     with pytest.raises(ZenrlError, match="already an exported policy"):
         tools.export(str(out), str(tmp_path / "again.pt"))
 
@@ -284,11 +286,12 @@ def test_exported_file_for_another_env_is_refused_by_name(ckpts, tmp_path):
     out = tmp_path / "cartpole.pt"
     tools.export(str(ckpts["cartpole"]), str(out))
     with pytest.raises(ZenrlError, match="observation keys"):
-        tools.evaluate(str(out), env_id=BW, env_kwargs=SHORT_MATCH, opponents=["cheese"], episodes=2, progress=False)
+        tools.evaluate(str(out), env_id=BW, env_kwargs=SHORT_MATCH, opponents=["cheese"], episodes=2, progress=False,
+                       allow_exported=True)
     env = make_env(RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}}).env)
     try:
         with pytest.raises(ZenrlError, match="cartpole.pt"):
-            tools.load_player(out, env.observation_space, env.action_space)
+            tools.load_player(out, env.observation_space, env.action_space, allow_exported=True)
     finally:
         env.close()
 
@@ -301,11 +304,14 @@ def test_evaluate_against_policy_files(ckpts, tmp_path):
     exported = tmp_path / "old.pt"
     tools.export(str(ckpts["match"]), str(exported))
     ckpt = str(ckpts["match"])
-    summary = tools.evaluate(ckpt, opponents=["cheese", ckpt, str(exported)], episodes=2, progress=False)
+    with pytest.raises(ZenrlError, match="--exported"):
+        tools.evaluate(ckpt, opponents=["cheese", ckpt, str(exported)], episodes=2, progress=False)
+    summary = tools.evaluate(ckpt, opponents=["cheese", ckpt, str(exported)], episodes=2, progress=False,
+                             allow_exported=True)
     assert [r["opponent"] for r in summary["rows"]] == ["cheese", ckpt, str(exported)]
     assert all(r["episodes"] == 2 for r in summary["rows"])
 
-    runner = EpisodeRunner(ckpt, None, None, [str(exported)])
+    runner = EpisodeRunner(ckpt, None, None, [str(exported)], allow_exported=True)
     calls = []
     inner = runner.frozen[str(exported)]
     runner.frozen[str(exported)] = lambda obs: calls.append(1) or inner(obs)
@@ -457,3 +463,21 @@ def test_plot_breaks_at_a_resume_and_draws_env_steps(tmp_path):
                                 "env_steps": 1000 * i, "env_steps_per_s": 200.0}) + "\n")
     res = tools.plot(run, tmp_path / "c.png", 400, 300)
     assert res["panels"] == ["env steps/s"]
+
+
+def test_an_exported_file_is_never_loaded_unless_asked_for(ckpts, tmp_path, monkeypatch):
+    """A `zenrl export` file is a TorchScript program: `--checkpoint` and `--opponents` refuse it
+    without `--exported`, before torch.jit.load ever sees it; checkpoints need no flag."""
+    import torch
+
+    out = tmp_path / "p.pt"
+    tools.export(str(ckpts["cartpole"]), str(out))
+    loads = []
+    real = torch.jit.load
+    monkeypatch.setattr(torch.jit, "load", lambda *a, **k: loads.append(a) or real(*a, **k))
+    assert cli_main(["evaluate", "--checkpoint", str(out), "--episodes", "1", "--workers", "1", "--no-progress"]) == 2
+    assert cli_main(["play", "--checkpoint", str(out), "--out", str(tmp_path / "m.gif"), "--max-steps", "3"]) == 2
+    assert loads == [], "an exported file reached torch.jit.load without --exported"
+    assert cli_main(["evaluate", "--checkpoint", str(out), "--exported", "--episodes", "1", "--workers", "1",
+                     "--no-progress"]) == 0
+    assert loads, "--exported loads it"

@@ -74,17 +74,19 @@ class EpisodeRunner:
     call). ``opponents`` may name policy files as well as bots (:func:`split_opponents`)."""
 
     def __init__(self, checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
-                 opponents: Sequence[str] | None, sample: bool = False) -> None:
+                 opponents: Sequence[str] | None, sample: bool = False, allow_exported: bool = False) -> None:
         torch.set_num_threads(1)
         bots, files = split_opponents(opponents) if opponents else (None, [])
         if files and not bots:
             bots = ["idle"]  # the env needs one scripted bot to start from; every job names its own
-        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=bots, sample=sample)
+        self.policy, self.env, _ = load_policy_env(checkpoint, env_id, env_kwargs, opponents=bots, sample=sample,
+                                                   allow_exported=allow_exported)
         self.frozen = {}
         if files:
             self.switch = _Switch()
             self.env.unwrapped.opponent_policy = self.switch  # built on the first episode that names "policy"
-            self.frozen = {f: load_player(f, self.env.observation_space, self.env.action_space) for f in files}
+            self.frozen = {f: load_player(f, self.env.observation_space, self.env.action_space, allow_exported)
+                           for f in files}
 
     def run(self, job: Job) -> EpisodeResult:
         self.policy.reseed(job.seed)  # a sampled episode depends on its job only, not on the worker
@@ -116,10 +118,10 @@ _RUNNER: EpisodeRunner | None = None  # one per worker process (set by the pool 
 
 
 def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
-                 opponents: Sequence[str] | None, sample: bool = False) -> None:
+                 opponents: Sequence[str] | None, sample: bool = False, allow_exported: bool = False) -> None:
     global _RUNNER
     quiet_native_imports()  # the worker shares the parent's stdout, whose last line is the JSON
-    _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents, sample)
+    _RUNNER = EpisodeRunner(checkpoint, env_id, env_kwargs, opponents, sample, allow_exported)
 
 
 def _run_job(job: Job) -> EpisodeResult:
@@ -174,18 +176,21 @@ def summarize(results: Iterable[EpisodeResult], match: bool) -> dict[str, Any]:
 
 def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str, Any] | None = None,
              opponents: Sequence[str] | None = MATCH_OPPONENTS, episodes: int = 20, workers: int = 1,
-             seed: int = 2_000_000, progress: bool = True, policy: str = "greedy") -> dict[str, Any]:
+             seed: int = 2_000_000, progress: bool = True, policy: str = "greedy",
+             allow_exported: bool = False) -> dict[str, Any]:
     """Play ``episodes`` per opponent (match envs; ``opponents`` ignored otherwise: bot names or
     policy files, see :func:`split_opponents`) with the policy of ``checkpoint`` (a checkpoint or
     ``zenrl export`` file, or a folder's newest checkpoint): ``"greedy"`` (argmax) or ``"sample"`` (draw from an actor-critic's
     action distribution, seeded per episode); ``workers`` > 1 uses that many ``spawn`` processes.
     Returns :func:`summarize`'s dict plus ``checkpoint``, ``env``, ``policy`` and per-episode
-    ``results``."""
+    ``results``. Exported files (as the policy or an opponent) load only with ``allow_exported``:
+    they are TorchScript programs, which run code when loaded."""
     if policy not in ("greedy", "sample"):
         raise ZenrlError(f"policy must be 'greedy' or 'sample', got {policy!r}")
     sample = policy == "sample"
     checkpoint = str(resolve_checkpoint(checkpoint))  # once: a live run may write a newer one meanwhile
-    probe_policy, probe_env, cfg = load_policy_env(checkpoint, env_id, env_kwargs, sample=sample)
+    probe_policy, probe_env, cfg = load_policy_env(checkpoint, env_id, env_kwargs, sample=sample,
+                                                     allow_exported=allow_exported)
     match = is_match_env(probe_env)
     env_name = probe_env.spec.id if probe_env.spec else (env_id or cfg.env.id)
     probe_env.close()
@@ -215,7 +220,7 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
         bar.start()
     try:
         if workers <= 1:
-            runner = EpisodeRunner(checkpoint, env_id, env_kwargs, opps, sample)
+            runner = EpisodeRunner(checkpoint, env_id, env_kwargs, opps, sample, allow_exported)
             try:
                 for j in jobs:
                     done(runner.run(j))
@@ -224,7 +229,8 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
         else:
             ctx = mp.get_context("spawn")
             with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_worker,
-                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample)) as pool:
+                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample,
+                                               allow_exported)) as pool:
                 for fut in as_completed([pool.submit(_run_job, j) for j in jobs]):
                     done(fut.result())
     finally:

@@ -135,10 +135,25 @@ def exported_config(meta: Mapping[str, Any]) -> RunConfig:
                              "env": {"id": meta["env"], "kwargs": dict(meta.get("env_kwargs") or {})}})
 
 
-def load_player(path: str | os.PathLike[str], observation_space: gym.Space, action_space: gym.Space):
-    """A checkpoint or an exported file -> ``player(obs) -> int`` (greedy) for an env with these
-    single spaces; a mismatch is a :class:`ZenrlError` naming it."""
-    if is_exported(path):
+def refuse_unasked_export(path: str | os.PathLike[str], allow_exported: bool) -> bool:
+    """True if ``path`` is a ``zenrl export`` file the caller may load. An exported file is a
+    TorchScript program: loading it runs the code inside it, so it is loaded only when the user
+    asked for exported policies explicitly (``allow_exported``, the tools' ``--exported``);
+    otherwise it is a :class:`ZenrlError`. Checkpoints never need it: they are read with
+    ``torch.load(..., weights_only=True)``, which runs no code."""
+    if not is_exported(path):
+        return False
+    if not allow_exported:
+        raise ZenrlError(f"{str(path)!r} is an exported TorchScript policy, and loading one runs the code inside it: "
+                         "pass --exported to load exported files you trust")
+    return True
+
+
+def load_player(path: str | os.PathLike[str], observation_space: gym.Space, action_space: gym.Space,
+                allow_exported: bool = False):
+    """A checkpoint or (with ``allow_exported``) an exported file -> ``player(obs) -> int``
+    (greedy) for an env with these single spaces; a mismatch is a :class:`ZenrlError` naming it."""
+    if refuse_unasked_export(path, allow_exported):
         player = ExportedPlayer(path)
         player.check_spaces(observation_space, action_space)
         return player
@@ -150,11 +165,13 @@ def load_player(path: str | os.PathLike[str], observation_space: gym.Space, acti
 
 def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = None,
                     env_kwargs: Mapping[str, Any] | None = None, render_mode: str | None = None,
-                    opponents: Sequence[str] | None = None, sample: bool = False) -> tuple[Any, gym.Env, RunConfig]:
+                    opponents: Sequence[str] | None = None, sample: bool = False,
+                    allow_exported: bool = False) -> tuple[Any, gym.Env, RunConfig]:
     """Checkpoint or exported file -> (greedy policy, a fresh env it plays in, the config it was
     trained with: the whole config for a checkpoint, algo and env for an exported file).
-    ``sample``: the policy draws from an actor-critic's action distribution instead (checkpoints only)."""
-    exported = ExportedPlayer(checkpoint) if is_exported(checkpoint) else None
+    ``sample``: the policy draws from an actor-critic's action distribution instead (checkpoints only).
+    ``allow_exported``: the user asked for exported files (see :func:`refuse_unasked_export`)."""
+    exported = ExportedPlayer(checkpoint) if refuse_unasked_export(checkpoint, allow_exported) else None
     if exported is not None:
         if sample:
             raise ZenrlError(f"{checkpoint}: an exported policy is greedy only; --policy sample needs a checkpoint")

@@ -104,7 +104,7 @@ def write_video(frames: Sequence[np.ndarray], out: str | os.PathLike[str], fps: 
 
 def play(checkpoint: str, out: str, env_id: str | None = None, env_kwargs: Mapping[str, Any] | None = None,
          opponent: str | None = None, side: str | None = None, seed: int = 0, fps: float | None = None,
-         max_steps: int | None = None, speedup: float = 1.0) -> dict[str, Any]:
+         max_steps: int | None = None, speedup: float = 1.0, allow_exported: bool = False) -> dict[str, Any]:
     """Render one greedy episode of ``checkpoint`` (a file, or a folder's newest checkpoint) to
     ``out`` (.gif / .mp4). For the match, ``opponent`` (default: the env's draw) and ``side`` pick
     the game; ``fps`` defaults to real time (the match's control_hz; the env's render_fps
@@ -115,7 +115,8 @@ def play(checkpoint: str, out: str, env_id: str | None = None, env_kwargs: Mappi
         raise ZenrlError(f"--speedup must be > 0, got {speedup}")
     checkpoint = str(resolve_checkpoint(checkpoint))
     opps = [opponent] if opponent else None
-    policy, env, _ = load_policy_env(checkpoint, env_id, env_kwargs, render_mode="rgb_array", opponents=opps)
+    policy, env, _ = load_policy_env(checkpoint, env_id, env_kwargs, render_mode="rgb_array", opponents=opps,
+                                    allow_exported=allow_exported)
     try:
         options = {}
         if is_match_env(env):
