@@ -20,7 +20,8 @@ from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import num_actions, obs_spec, resolve_device
 from zenrl.common.roles import Cadence, RoleLoop
-from zenrl.learner.checkpoint import VersionReservation, checkpoint_dir, list_checkpoints, load_latest, save_checkpoint
+from zenrl.learner.checkpoint import (VersionReservation, checkpoint_dir, list_checkpoints, load_latest,
+                                     remove_stale_temp_files, save_checkpoint)
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,8 @@ class LearnerBase:
         self.id = learner_id
         self.run_dir = Path(cfg.runs_dir) / run_id
         self.ckpt_dir = checkpoint_dir(cfg.runs_dir, run_id)
+        for stale in remove_stale_temp_files(self.ckpt_dir) + remove_stale_temp_files(self.run_dir):
+            log.warning("removed %s, left by a write that was killed before it finished", stale)
         self.versions = VersionReservation(self.run_dir)
         torch.set_num_threads(cfg.learner.torch_threads)
         self.device = resolve_device(cfg.learner.device)

@@ -12,8 +12,9 @@ from zenrl.common.checkpoints import (TRAINING_STATES, A3CTrainingState, ApexTra
 from zenrl.common.config import load_config
 from zenrl.common.errors import CheckpointError
 from zenrl.common.specs import ArraySpec
+from zenrl.learner import checkpoint as ckmod
 from zenrl.learner.checkpoint import (list_checkpoints, read_checkpoint, load_latest, read_version_mark,
-                                      save_checkpoint, write_version_mark)
+                                      remove_stale_temp_files, save_checkpoint, write_version_mark)
 from zenrl.learner.dqn import DQNLearner
 from zenrl.learner.base import check_resume_compatible
 
@@ -228,3 +229,39 @@ def test_a_file_the_schema_cannot_read_is_a_clear_error():
         TrainingState.from_dict({"weights": 1})
     with pytest.raises(CheckpointError, match="unknown algorithm"):
         training_state_class("dqn")
+
+
+def test_writes_are_durable_and_a_failed_one_leaves_the_old_state(tmp_path, monkeypatch):
+    """The folder is fsynced after each rename (the new name is on disk, not only the data); a
+    write that fails midway (a full disk) leaves the previous checkpoint and mark, and no temp file."""
+    synced = []
+    real = ckmod._fsync_dir
+    monkeypatch.setattr(ckmod, "_fsync_dir", lambda d: synced.append(d) or real(d))
+    save_checkpoint(tmp_path, _a3c_state(10), keep=3)
+    write_version_mark(tmp_path, 7)
+    assert synced == [tmp_path, tmp_path]
+
+    def full_disk(*_a, **_k):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(ckmod.torch, "save", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        save_checkpoint(tmp_path, _a3c_state(20), keep=3)
+    assert [f.name for f in list_checkpoints(tmp_path)] == ["ckpt-000000000010.pt"]
+    assert not list(tmp_path.glob(".*tmp*")), "a failed write must not leave its temp file"
+    assert load_latest(tmp_path)[0].updates == 10 and read_version_mark(tmp_path) == 7
+
+
+def test_temp_files_of_killed_writes_are_removed_when_a_learner_starts(tmp_path):
+    from zenrl.learner.base import LearnerBase
+
+    cfg = load_config(None, ["runs_dir=" + str(tmp_path)])
+    ck = tmp_path / "r1" / "checkpoints"
+    ck.mkdir(parents=True)
+    killed = [ck / ".ckpt-000000000050.pt.tmp-4242", tmp_path / "r1" / ".weights_version.tmp-4242"]
+    for p in killed:
+        p.write_bytes(b"half a file")
+    keep = ck / "ckpt-000000000040.pt"
+    keep.write_bytes(b"x")
+    LearnerBase(cfg, None, "r1", "learner")
+    assert not any(p.exists() for p in killed) and keep.exists()
+    assert remove_stale_temp_files(tmp_path / "nowhere") == []
