@@ -92,7 +92,9 @@ class EpisodeRunner:
         options = {}
         if job.opponent in self.frozen:
             self.switch.current = self.frozen[job.opponent]
-            self.switch.current.reset()
+            reset = getattr(self.switch.current, "reset", None)  # a player is any obs -> action callable
+            if reset is not None:
+                reset()
             options = {"opponent": "policy", "side": job.side}
         elif job.opponent is not None:
             options = {"opponent": job.opponent, "side": job.side}
