@@ -177,11 +177,12 @@ def test_evaluator_rounds_equal_episodes_played_alone_with_the_state_carried(use
         np.testing.assert_array_equal(rets, _play(net, [k * episodes + i for i in range(episodes)])[0])
 
 
-def test_zenrl_evaluate_plays_each_episode_from_a_zero_state(tmp_path):
+def test_zenrl_evaluate_plays_each_episode_from_a_zero_state_and_export_refuses_clearly(tmp_path):
     from zenrl.common.checkpoints import R2D2TrainingState
     from zenrl.common.networks import arch_fingerprint
     from zenrl.learner.checkpoint import save_checkpoint
-    from zenrl.tools import evaluate
+    from zenrl.common.errors import ZenrlError
+    from zenrl.tools import evaluate, export
 
     cfg = _eval_cfg(1)
     net = _alternating_net(cfg)
@@ -191,3 +192,5 @@ def test_zenrl_evaluate_plays_each_episode_from_a_zero_state(tmp_path):
     path = save_checkpoint(tmp_path, state, keep=1)
     out = evaluate(str(path), episodes=4, seed=0, progress=False)
     assert [r["ret"] for r in out["results"]] == _play(net, range(4))[0]
+    with pytest.raises(ZenrlError, match=r"recurrent \(r2d2\) policy cannot be exported yet"):
+        export(str(path), str(tmp_path / "policy.pt"))
