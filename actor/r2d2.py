@@ -91,6 +91,8 @@ class SequencesToReplay:
             log.warning("actor %s stops with %d chunks no replay could take", self.replay.actor_id, left)
 
     def values(self) -> dict[str, Any]:
+        """``sent_sequences``; ``sent_transitions``: the valid steps they hold (Ape-X's name, for
+        the displays); the replay client's chunk counters."""
         r = self.replay
         return {"sent_sequences": self.sent_sequences, "sent_transitions": self.sent_steps,
                 "sent_chunks": r.sent_chunks, "failed_chunks": r.failed_chunks,

@@ -179,7 +179,7 @@ class SelfPlayConfig(_Section):
 class R2D2Config(_Section):
     """R2D2 (``algo: r2d2``): recurrent Ape-X, sequences in replay (Kapturowski et al., 2019)."""
 
-    sequence_length: int = Field(80, ge=2, le=1000, description="R2D2: steps per stored sequence (m, even); sequences start every m/2 steps of an episode and never span two.")
+    sequence_length: int = Field(80, ge=2, le=1000, description="R2D2: steps per stored sequence (m, even); sequences start every m/2 steps of an episode and never span two. Under r2d2, replay.capacity, replay.min_size and learner.batch_size count sequences.")
     burn_in: int = Field(40, ge=0, description="R2D2: the learner unrolls this many first steps of a sequence from its stored state without gradient and without loss (at most sequence_length / 2); sequences that start their episode are trained from step 0 with train_episode_starts.")
     n_step: int = Field(5, ge=1, le=100, description="R2D2: n of the n-step double-Q targets (shortened at a sequence's end).")
     eta: float = Field(0.9, ge=0, le=1, description="R2D2: a sequence's priority is eta * max|delta| + (1 - eta) * mean|delta| over its trained steps.")

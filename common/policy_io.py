@@ -122,9 +122,11 @@ class GreedyPolicy:
         self._state = None
 
     def __call__(self, obs: Any) -> int:
+        # a recurrent network's state follows every observation, whether its action is taken or not
+        greedy = int(self.batch(single_to_flat(obs))[0]) if isinstance(self.net, RecurrentQNetwork) else None
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(self.n_actions))
-        return int(self.batch(single_to_flat(obs))[0])
+        return greedy if greedy is not None else int(self.batch(single_to_flat(obs))[0])
 
     def batch(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
         """int64[B] actions (greedy, or sampled) for flat batched observations (no epsilon)."""

@@ -4,7 +4,8 @@
 counterpart: online and target :class:`~zenrl.common.recurrent.RecurrentQNetwork`, optimizer,
 the R2D2 loss (:mod:`zenrl.learner.r2d2_loss`: burn-in from the stored state without gradient,
 n-step double-Q on value-rescaled Q, the mixed sequence priority), gradient clipping, the update
-guard and the target network copy.
+guard and the target network copy. The regression is a squared error on the rescaled values, as
+in the paper (the rescaling keeps its scale small); ``learner.huber_delta`` is Ape-X's.
 
 :class:`R2D2Learner` is :class:`~zenrl.learner.apex.ApexLearner` with that core: the same
 prefetcher (replay items are sequences here), priorities back from the watched sender, weights

@@ -157,6 +157,17 @@ def test_the_reference_policy_needs_its_state():
     assert _play(net, range(4), reset_per_episode=False)[0] != rets    # out of phase where an episode was odd
 
 
+def test_the_state_follows_every_observation_also_under_random_actions():
+    net = _alternating_net(_eval_cfg(1))
+    obs = np.zeros(2, np.float32)
+    policy = GreedyPolicy(net, 2, epsilon=1.0, seed=0)
+    policy(obs)  # a random action; the state still took the step: the greedy one next is the second
+    policy.epsilon = 0.0
+    assert [policy(obs) for _ in range(3)] == [0, 1, 0]
+    policy.reset()
+    assert policy(obs) == 1
+
+
 @pytest.mark.parametrize("use_numpy", [True, False])
 def test_evaluator_rounds_equal_episodes_played_alone_with_the_state_carried(use_numpy):
     episodes = 3
