@@ -1,7 +1,9 @@
 """Evaluator process (``zenrl evaluator``): the actor worker (``actor/worker.py``) composed of
 
 * :class:`~zenrl.actor.policies.Greedy` (or, with ``evaluator.policy: sample``,
-  :class:`~zenrl.actor.policies.Sampling`), with ``evaluator.epsilon`` random actions;
+  :class:`~zenrl.actor.policies.Sampling`; for a recurrent network (R2D2)
+  :class:`~zenrl.actor.policies.RecurrentGreedy`, which carries each env's state through its
+  episode), with ``evaluator.epsilon`` random actions;
 * :class:`~zenrl.actor.adders.EvalEpisodes`: one episode per env per round, published as an
   :class:`~zenrl.common.protocol.EvalResult` and written to the run's metrics (source
   ``eval``: mean and spread of the return, match win and draw rates);
@@ -24,7 +26,7 @@ import torch
 
 from zenrl.actor.adders import EvalEpisodes
 from zenrl.actor.batch_env import EnvBatch
-from zenrl.actor.policies import Greedy, Sampling
+from zenrl.actor.policies import EpisodeStartsToPolicy, Greedy, RecurrentGreedy, Sampling
 from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, EvalInterval
 from zenrl.common import protocol as P
@@ -32,6 +34,7 @@ from zenrl.common.checkpoints import training_state_class
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import num_actions, obs_spec, set_compute_threads
+from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
@@ -41,7 +44,7 @@ def build_policy_net(cfg: RunConfig, envs: EnvBatch) -> torch.nn.Module:
     """The run's policy network (Q network or actor-critic) for ``envs``, in eval mode."""
     spec = obs_spec(envs.single_observation_space)
     n = num_actions(envs.single_action_space)
-    return training_state_class(cfg.algo).policy_network(spec, n, cfg.network).eval()
+    return training_state_class(cfg.algo).run_policy_network(spec, n, cfg).eval()
 
 
 class Evaluator(ActorWorker):
@@ -63,12 +66,17 @@ class Evaluator(ActorWorker):
         policy: Any
         if ecfg.policy == "sample":
             policy = Sampling(self.net, n_actions, np.random.default_rng(first), ecfg.epsilon)
+        elif isinstance(self.net, RecurrentQNetwork):
+            policy = RecurrentGreedy(self.net, n_actions, ecfg.epsilon, first, use_numpy)
         else:
             policy = Greedy(self.net, n_actions, ecfg.epsilon, first, use_numpy)
         weights = WeightsFollower(node, keys, self.net, cfg.transport.max_message_bytes)
         self.adder: EvalEpisodes = EvalEpisodes(keys, ecfg.episodes, lambda: weights.version, lambda: weights.updates,
                                                 metrics)
-        super().__init__(keys, "evaluator", None, envs, policy, self.adder, weights, EvalInterval(ecfg.interval_s),
+        adder: Any = self.adder
+        if isinstance(policy, RecurrentGreedy):  # its state is zeroed where an episode begins
+            adder = EpisodeStartsToPolicy(adder, policy)
+        super().__init__(keys, "evaluator", None, envs, policy, adder, weights, EvalInterval(ecfg.interval_s),
                          poll_steps=None, report_s=ecfg.interval_s, query_timeout_s=cfg.transport.query_timeout_s,
                          round_seed=lambda k: first + k * ecfg.episodes)
 

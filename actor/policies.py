@@ -5,6 +5,9 @@
   values go to the adder, which reuses them for the initial priorities.
 * :class:`Sampling` (A3C): actions drawn from an actor-critic's softmax policy.
 * :class:`Greedy` (evaluation): argmax of the Q values or of the policy logits.
+* :class:`RecurrentEpsilonGreedyQ` (R2D2) and :class:`RecurrentGreedy` (its evaluation): the
+  same over a recurrent Q network, with a state per env zeroed where an episode begins
+  (:class:`RecurrentQPolicy`; the adder wrapper :class:`EpisodeStartsToPolicy` tells it where).
 
 A policy acts with the network the weights follower loads into (``net``); the worker calls
 :meth:`sync` after each load. For MLP networks the forward runs in numpy (:class:`NumpyQ`, the
@@ -14,6 +17,7 @@ than the arithmetic of the small MLPs actors run.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping, Protocol
 
 import numpy as np
@@ -22,6 +26,7 @@ import torch
 from zenrl.common.exploration import EpsilonGreedy
 from zenrl.common.networks import NumpyQ, to_tensors
 from zenrl.common.policy_io import greedy_actions, sampled_actions
+from zenrl.common.recurrent import NumpyRecurrentQ, RecurrentQNetwork
 
 Obs = Mapping[str, np.ndarray]
 
@@ -134,3 +139,143 @@ class Sampling:
 
     def act(self, obs: Obs) -> tuple[np.ndarray, None]:
         return _explore(sampled_actions(self.net, obs, self.rng), self.epsilon, self.n_actions, self.rng), None
+
+
+# --------------------------------------------------------------------------------------------
+# Recurrent policies (R2D2): a state per env, zeroed where an episode begins
+# --------------------------------------------------------------------------------------------
+class RecurrentQForward:
+    """Q values and the next state of a :class:`~zenrl.common.recurrent.RecurrentQNetwork` for
+    flat observations [B, ...] and a state (h, c) float32[B, H] each: q float32[B, A] and the
+    state after the step. In numpy (:class:`~zenrl.common.recurrent.NumpyRecurrentQ`) for MLP
+    encoders, with ``net.step`` otherwise."""
+
+    def __init__(self, net: RecurrentQNetwork, use_numpy: bool = True) -> None:
+        self.net = net
+        self.fast = NumpyRecurrentQ.of(net) if use_numpy else None
+
+    def sync(self) -> None:
+        if self.fast is not None:
+            self.fast.load(self.net)
+
+    def __call__(self, obs: Obs, state: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        if self.fast is not None:
+            return self.fast(obs, state)
+        with torch.no_grad():
+            q, (h, c) = self.net.step(to_tensors(obs), (torch.from_numpy(state[0]), torch.from_numpy(state[1])))
+        return q.numpy(), (h.numpy(), c.numpy())
+
+
+@dataclass
+class RecurrentExtras:
+    """What a recurrent Q policy hands its adder per step: the float32[E, A] Q values acted on
+    and the state (h, c) float32[E, H] each they were computed from (zero where an episode began)."""
+
+    q: np.ndarray
+    h: np.ndarray
+    c: np.ndarray
+
+
+class RecurrentQPolicy:
+    """The state a recurrent Q policy carries: (h, c) float32[E, H] per env after its last step,
+    and which envs begin an episode at the next step (their state is zeroed then). The worker
+    gives policies observations only, so the episode starts come from
+    :class:`EpisodeStartsToPolicy`, which wraps the adder (every env begins one at the first
+    step)."""
+
+    def __init__(self, net: RecurrentQNetwork, use_numpy: bool = True) -> None:
+        self.net = net
+        self.q = RecurrentQForward(net, use_numpy)
+        self.state: tuple[np.ndarray, np.ndarray] | None = None
+        self.starts: np.ndarray | None = None
+
+    def sync(self) -> None:
+        self.q.sync()
+
+    def episodes_ended(self, done: np.ndarray | None) -> None:
+        """The envs where ``done`` (bool[E]) is set begin an episode at the next step; None: all of
+        them (a new round of episodes)."""
+        if self.starts is not None:
+            self.starts |= True if done is None else done
+
+    def step(self, obs: Obs) -> RecurrentExtras:
+        """One step of every env from its state (zero where an episode begins); keeps the new state."""
+        E = len(next(iter(obs.values())))
+        if self.state is None or self.state[0].shape[0] != E:
+            z = np.zeros((E, self.net.lstm_size), np.float32)
+            self.state, self.starts = (z, z.copy()), np.ones(E, bool)
+        h, c = self.state
+        if self.starts.any():
+            keep = ~self.starts[:, None]
+            h, c = h * keep, c * keep
+            self.starts[:] = False
+        q, self.state = self.q(obs, (h, c))
+        return RecurrentExtras(q, h, c)
+
+    def q_after(self, obs: Obs, idx: np.ndarray) -> np.ndarray:
+        """float32[len(idx), A]: the Q values of envs ``idx`` on ``obs`` (their rows; e.g. the
+        final observations of truncated episodes) from the state their last step left."""
+        return self.q({k: v[idx] for k, v in obs.items()}, (self.state[0][idx], self.state[1][idx]))[0]
+
+
+class RecurrentEpsilonGreedyQ(RecurrentQPolicy):
+    """R2D2 acting: :class:`EpsilonGreedyQ` (per-env epsilon, the Ape-X ladder) over a recurrent
+    Q network. Extras: :class:`RecurrentExtras` (the Q values feed the initial priorities, the
+    state is stored with each sequence)."""
+
+    def __init__(self, net: RecurrentQNetwork, eps: np.ndarray, n_actions: int, rng: np.random.Generator,
+                 use_numpy: bool = True) -> None:
+        super().__init__(net, use_numpy)
+        self.eps = eps
+        self._pick = EpsilonGreedy(eps, n_actions, rng)
+
+    def reseed(self, seed: int) -> None:
+        self._pick.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, RecurrentExtras]:
+        x = self.step(obs)
+        return self._pick(x.q), x
+
+
+class RecurrentGreedy(RecurrentQPolicy):
+    """Evaluation of a recurrent Q network: argmax actions carrying each env's state through its
+    episode, with ``epsilon`` uniform actions from its own generator. No extras."""
+
+    def __init__(self, net: RecurrentQNetwork, n_actions: int, epsilon: float = 0.0, seed: int = 0,
+                 use_numpy: bool = True) -> None:
+        super().__init__(net, use_numpy)
+        self.n_actions, self.epsilon = n_actions, epsilon
+        self.rng = np.random.default_rng(seed)
+
+    def reseed(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, None]:
+        return _explore(self.step(obs).q.argmax(1), self.epsilon, self.n_actions, self.rng), None
+
+
+class EpisodeStartsToPolicy:
+    """An adder that tells a :class:`RecurrentQPolicy` where episodes begin, then hands each step
+    on to ``inner``: envs whose episode the step ended (``EnvBatch`` has reset them), and every
+    env after a step that ends a round (the worker resets them all)."""
+
+    def __init__(self, inner: Any, policy: RecurrentQPolicy) -> None:
+        self.inner, self.policy = inner, policy
+
+    def start(self, node: Any) -> None:
+        self.inner.start(node)
+
+    def add(self, obs: Obs, actions: np.ndarray, extras: Any, res: Any) -> bool:
+        try:
+            ended = self.inner.add(obs, actions, extras, res)
+        finally:  # the envs were stepped (and reset) whatever the inner adder did
+            self.policy.episodes_ended(res.terminated | res.truncated)
+        if ended:
+            self.policy.episodes_ended(None)
+        return ended
+
+    def flush(self) -> None:
+        self.inner.flush()
+
+    def values(self) -> dict[str, Any]:
+        return self.inner.values()

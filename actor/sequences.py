@@ -37,7 +37,8 @@ import numpy as np
 
 from zenrl.common.recurrent import inverse_value_rescale, mixed_priority, value_rescale
 
-#: indices of the envs whose episode was truncated -> float[len(idx), A] the Q values of their
+#: indices of the envs whose episode was truncated (and not terminated: with both flags set the
+#: episode terminated, nothing to bootstrap) -> float[len(idx), A] the Q values of their
 #: final observations (one step of the acting network from the state after the last step)
 FinalQFn = Callable[[np.ndarray], np.ndarray]
 
@@ -106,7 +107,7 @@ class SequenceBuilder:
             for k, v in next_obs.items():
                 self._final["o:" + k][row, idx] = v[idx]
             self._final["q"][row, idx] = 0.0                 # terminated: nothing to bootstrap
-            tr = truncated.nonzero()[0]
+            tr = (truncated & ~terminated).nonzero()[0]   # both set: the episode terminated
             if tr.size:
                 self._final["q"][row, tr] = final_q_fn(tr)
         full = (ep >= m) & ((ep - m) % P == 0)               # [ep-m, ep) is complete, s_m = s_t

@@ -33,6 +33,7 @@ import torch
 from zenrl.common.config import NetworkConfig, RunConfig, config_from_dict
 from zenrl.common.errors import CheckpointError
 from zenrl.common.networks import ActorCritic, QNetwork
+from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.specs import ArraySpec
 
 log = logging.getLogger(__name__)
@@ -107,6 +108,13 @@ class TrainingState:
         """A new policy network (:attr:`network`) for observations ``spec`` and ``n_actions``."""
         return cls.network(spec, n_actions, net_cfg)
 
+    @classmethod
+    def run_policy_network(cls, spec: Mapping[str, ArraySpec], n_actions: int, cfg: RunConfig) -> torch.nn.Module:
+        """The policy network of a run configured by ``cfg`` (what the evaluator and the tools
+        build): :meth:`policy_network` with ``cfg.network``. An algorithm whose network takes
+        options from its own section too (R2D2's LSTM size) overrides this."""
+        return cls.policy_network(spec, n_actions, cfg.network)
+
     # -- the file's dict ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """The dict ``torch.save`` writes: ``format``, ``algo`` and every field by name."""
@@ -164,6 +172,38 @@ class A3CTrainingState(TrainingState):
     #: gradients applied (a field of its own here, not inside a learner dict)
     updates: int = 0  # type: ignore[assignment]  # a stored field where the base has a property
     env_steps_trained: int = 0
+
+
+@dataclasses.dataclass(kw_only=True)
+class R2D2TrainingState(TrainingState):
+    """R2D2: the learner's state (online and target recurrent Q networks, optimizer, updates) and
+    the sequences trained on. Its policy is a :class:`~zenrl.common.recurrent.RecurrentQNetwork`
+    whose LSTM size is the run's ``r2d2.lstm_size``."""
+
+    algo: ClassVar[str] = "r2d2"
+    network: ClassVar[type[torch.nn.Module]] = RecurrentQNetwork
+    policy_path: ClassVar[tuple[str, ...]] = ("learner", "online")
+
+    #: ``R2D2Core.state_dict()`` (learner/r2d2.py): ``online``, ``target``, ``optimizer``, ``updates``
+    learner: dict[str, Any]
+    sequences_consumed: int = 0
+
+    @property
+    def updates(self) -> int:
+        return int(self.learner.get("updates", 0))
+
+    @classmethod
+    def policy_network(cls, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig,
+                       lstm_size: int | None = None) -> torch.nn.Module:
+        """``lstm_size`` None: the network's default size; a run's network is
+        :meth:`run_policy_network`'s (``r2d2.lstm_size``)."""
+        if lstm_size is None:
+            return RecurrentQNetwork(spec, n_actions, net_cfg)
+        return RecurrentQNetwork(spec, n_actions, net_cfg, lstm_size)
+
+    @classmethod
+    def run_policy_network(cls, spec: Mapping[str, ArraySpec], n_actions: int, cfg: RunConfig) -> torch.nn.Module:
+        return cls.policy_network(spec, n_actions, cfg.network, cfg.r2d2.lstm_size)
 
 
 

@@ -176,8 +176,30 @@ class SelfPlayConfig(_Section):
     checkpoint_dir: Optional[str] = Field(None, description="Where snapshots are read from (default: <runs_dir>/<run_id>/checkpoints).")
 
 
+class R2D2Config(_Section):
+    """R2D2 (``algo: r2d2``): recurrent Ape-X, sequences in replay (Kapturowski et al., 2019)."""
+
+    sequence_length: int = Field(80, ge=2, le=1000, description="R2D2: steps per stored sequence (m, even); sequences start every m/2 steps of an episode and never span two. Under r2d2, replay.capacity, replay.min_size and learner.batch_size count sequences.")
+    burn_in: int = Field(40, ge=0, description="R2D2: the learner unrolls this many first steps of a sequence from its stored state without gradient and without loss (at most sequence_length / 2); sequences that start their episode are trained from step 0 with train_episode_starts.")
+    n_step: int = Field(5, ge=1, le=100, description="R2D2: n of the n-step double-Q targets (shortened at a sequence's end).")
+    eta: float = Field(0.9, ge=0, le=1, description="R2D2: a sequence's priority is eta * max|delta| + (1 - eta) * mean|delta| over its trained steps.")
+    value_rescale_eps: float = Field(1e-3, gt=0, le=1, description="R2D2: epsilon of the value rescaling h(x) = sign(x)(sqrt(|x| + 1) - 1) + eps x the Q values are learnt under.")
+    train_episode_starts: bool = Field(True, description="R2D2: a sequence that starts its episode (its stored state is exactly zero) is trained from step 0 instead of after the burn-in.")
+    block_steps: int = Field(16, ge=1, le=4096, description="R2D2 actors gather the sequences closed over this many batched steps at once (one gathering and priority computation per block) and send them in chunks of ceil(actor.chunk_size / sequence_length) sequences.")
+    lstm_size: int = Field(128, ge=1, le=8192, description="R2D2: size of the LSTM between the torso (network.hidden) and the dueling head.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "R2D2Config":
+        if self.sequence_length % 2:
+            raise ValueError(f"r2d2.sequence_length must be even (sequences overlap by half), got {self.sequence_length}")
+        if self.burn_in > self.sequence_length // 2:
+            raise ValueError(f"r2d2.burn_in must be at most sequence_length / 2 = {self.sequence_length // 2}, "
+                             f"got {self.burn_in}")
+        return self
+
+
 class RunConfig(_Section):
-    algo: Literal["apex", "a3c"] = Field("apex", description="Algorithm family: apex (Ape-X DQN) or a3c.")
+    algo: Literal["apex", "a3c", "r2d2"] = Field("apex", description="Algorithm family: apex (Ape-X DQN), a3c, or r2d2 (recurrent Ape-X).")
     run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Run id (key prefix zenrl/<run_id>/ and runs/<run_id>/); default: generated.")
     runs_dir: str = Field("runs", description="Directory holding runs/<run_id>/.")
     seed: int = Field(0, ge=0, description="Base random seed.")
@@ -196,6 +218,7 @@ class RunConfig(_Section):
     evaluator: EvalConfig = Field(default_factory=EvalConfig)
     a3c: A3CConfig = Field(default_factory=A3CConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
+    r2d2: R2D2Config = Field(default_factory=R2D2Config)
 
     @field_validator("cpu_placement", mode="before")
     @classmethod

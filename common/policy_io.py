@@ -25,6 +25,7 @@ from zenrl.common.checkpoints import TrainingState, list_checkpoints, read_check
 from zenrl.common.config import RunConfig, SelfPlayConfig
 from zenrl.common.errors import CheckpointError
 from zenrl.common.networks import ActorCritic, flat_obs, num_actions, obs_spec, sample_categorical
+from zenrl.common.recurrent import RecurrentQNetwork
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +37,7 @@ def build_network(state: TrainingState, observation_space: gym.Space, action_spa
     in eval mode on the CPU. ``observation_space`` / ``action_space`` are the single env's
     spaces; a mismatch with the trained network is a :class:`CheckpointError` naming the
     difference."""
-    net = state.policy_network(obs_spec(observation_space), num_actions(action_space), state.run_config().network)
+    net = state.run_policy_network(obs_spec(observation_space), num_actions(action_space), state.run_config())
     try:
         net.load_state_dict(state.policy_state())
     except RuntimeError as e:
@@ -65,6 +66,18 @@ def greedy_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray]) -> np.n
         return out.argmax(1).numpy()
 
 
+def recurrent_greedy_actions(net: RecurrentQNetwork, flat: Mapping[str, np.ndarray],
+                             state: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
+    """int64[B] argmax actions of a recurrent Q network for flat batched observations, one step
+    from ``state`` ((h, c) float32[B, H] each; None: zero, an episode's start), and the state after."""
+    with torch.no_grad():
+        obs = {k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()}
+        if state is None:
+            state = net.initial_state(len(next(iter(flat.values()))))
+        q, state = net.step(obs, state)
+    return q.argmax(1).numpy(), state
+
+
 def sampled_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray], rng: np.random.Generator) -> np.ndarray:
     """int64[B]: actions drawn from an actor-critic's categorical policy (softmax of its logits)
     with ``rng``, for flat batched observations. A Q network has no policy to sample from:
@@ -83,7 +96,8 @@ class GreedyPolicy:
     ``net``: a QNetwork / ActorCritic; ``n_actions``: size of the discrete action space;
     ``sample``: draw actions from an actor-critic's policy instead of taking its argmax (the
     policy A3C trains; a :class:`ValueError` for a Q network). :meth:`reseed` makes a sampled
-    episode reproducible.
+    episode reproducible. A recurrent Q network (R2D2) carries its state from call to call:
+    :meth:`reset` where an episode begins.
     """
 
     def __init__(self, net: torch.nn.Module, n_actions: int, epsilon: float = 0.0, seed: int | None = None,
@@ -96,20 +110,33 @@ class GreedyPolicy:
         self.sample = bool(sample)
         self.rng = np.random.default_rng(seed)
         self.name = name
+        self._state: tuple[torch.Tensor, torch.Tensor] | None = None  # a recurrent network's, since reset()
 
     def reseed(self, seed: int | None) -> None:
         """Restart the policy's own random stream (epsilon and sampling) from ``seed``."""
         self.rng = np.random.default_rng(seed)
 
+    def reset(self) -> None:
+        """An episode begins: a recurrent network's state goes back to zero (a feed-forward
+        network has none)."""
+        self._state = None
+
     def __call__(self, obs: Any) -> int:
+        # a recurrent network's state follows every observation, whether its action is taken or not
+        greedy = int(self.batch(single_to_flat(obs))[0]) if isinstance(self.net, RecurrentQNetwork) else None
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
             return int(self.rng.integers(self.n_actions))
-        return int(self.batch(single_to_flat(obs))[0])
+        return greedy if greedy is not None else int(self.batch(single_to_flat(obs))[0])
 
     def batch(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
         """int64[B] actions (greedy, or sampled) for flat batched observations (no epsilon)."""
         if self.sample:
             return sampled_actions(self.net, flat, self.rng)
+        if isinstance(self.net, RecurrentQNetwork):
+            if self._state is not None and self._state[0].shape[0] != len(next(iter(flat.values()))):
+                self._state = None  # another batch: other episodes
+            actions, self._state = recurrent_greedy_actions(self.net, flat, self._state)
+            return actions
         return greedy_actions(self.net, flat)
 
 
@@ -198,6 +225,7 @@ class SelfPlayWrapper(gym.Wrapper):
         if "opponent" not in options and self.league.snapshots and self.rng.random() < self.league.cfg.snapshot_prob:
             name, net = self.league.sample()
             self._policy.net, self._policy.name = net, name
+            self._policy.reset()
             options["opponent"] = "policy"
         return self.env.reset(seed=seed, options=options)
 

@@ -7,7 +7,8 @@ learner on ``gather`` (and stays in the replay at high priority, so the restarte
 again); a finite reward of 3e38 makes the loss ``inf``. :class:`ChunkChecker` holds the run's
 env spec (observation fields with their dtypes and finite ``Box`` bounds, the number of actions,
 ``n_step``) and the configured bounds on rewards and priorities, and names the first rule a
-chunk breaks. :class:`Quarantine` drops a source's traffic for a while once it keeps breaking
+chunk breaks; :class:`SequenceChecker` does the same for R2D2's chunks, whose items are
+sequences. :class:`Quarantine` drops a source's traffic for a while once it keeps breaking
 rules.
 """
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from zenrl.common.specs import ObsRule, Rejection, obs_rules_from_space
 
-__all__ = ["ChunkChecker", "ObsRule", "Quarantine", "Rejection", "obs_rules_from_space"]
+__all__ = ["Checker", "ChunkChecker", "ObsRule", "Quarantine", "Rejection", "SequenceChecker", "obs_rules_from_space"]
 
 #: Fields every Ape-X chunk carries besides the observations (dtype of one item, shape ()).
 SCALAR_FIELDS = {"action": "int64", "reward": "float32", "n": "uint8", "terminated": "bool"}
@@ -45,6 +46,34 @@ def _as_bound(b: np.ndarray, dtype: str, direction: int) -> np.ndarray:
         return out
     info = np.iinfo(dtype)
     return np.clip(np.floor(b) if direction > 0 else np.ceil(b), info.min, info.max).astype(dtype)
+
+
+def _tiled_bounds(rules: Mapping[str, ObsRule], check_obs_bounds: bool) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
+    """The bounded fields as ``(name, rows R, low, high)`` with one item's bounds tiled R times,
+    so that a batch is compared as contiguous blocks of R items (broadcasting [B, D] against [D]
+    runs numpy's inner loop once per row: ~70x slower for CartPole's D = 4)."""
+    out = []
+    for k, r in rules.items():
+        if r.low is None or not check_obs_bounds:
+            continue
+        d = max(1, int(np.prod(r.shape, dtype=np.int64)))
+        rows = max(1, BOUNDS_BLOCK_ELEMENTS // d)
+        out.append((k, rows, np.tile(_as_bound(r.low, r.dtype, -1), rows), np.tile(_as_bound(r.high, r.dtype, 1), rows)))
+    return out
+
+
+def _bounds_rejection(k: str, a: np.ndarray, rows: int, low: np.ndarray, high: np.ndarray) -> Rejection | None:
+    """``a`` [N, ...] (N items of field ``k``) against the tiled bounds of :func:`_tiled_bounds`."""
+    flat = a.reshape(-1)
+    whole = (a.shape[0] // rows) * low.shape[0]
+    rest = flat[whole:]
+    if whole:  # elementwise min/max across the blocks, then one comparison of a block
+        blocks = flat[:whole].reshape(-1, low.shape[0])
+        if (blocks.min(axis=0) < low).any() or (blocks.max(axis=0) > high).any():
+            return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+    if (rest < low[:rest.shape[0]]).any() or (rest > high[:rest.shape[0]]).any():
+        return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+    return None
 
 
 class ChunkChecker:
@@ -73,17 +102,7 @@ class ChunkChecker:
         self.required = {**{k: (np.dtype(r.dtype), r.shape) for k, r in self.rules.items()},
                          **{k: (np.dtype(dt), ()) for k, dt in SCALAR_FIELDS.items()}}
         self.optional = {k: (np.dtype(dt), ()) for k, dt in OPTIONAL_FIELDS.items()}
-        # bounded fields: (name, rows R, low, high) with the item's bounds tiled R times, so that a
-        # batch is compared as contiguous blocks of R items (broadcasting [B, D] against [D]
-        # runs numpy's inner loop once per row: ~70x slower for CartPole's D = 4)
-        self._bounded = []
-        for k, r in self.rules.items():
-            if r.low is None or not check_obs_bounds:
-                continue
-            d = max(1, int(np.prod(r.shape, dtype=np.int64)))
-            rows = max(1, BOUNDS_BLOCK_ELEMENTS // d)
-            self._bounded.append((k, rows, np.tile(_as_bound(r.low, r.dtype, -1), rows),
-                                  np.tile(_as_bound(r.high, r.dtype, 1), rows)))
+        self._bounded = _tiled_bounds(self.rules, check_obs_bounds)
         self._n_actions = np.uint64(self.n_actions)
         self._n_step = np.uint8(min(self.n_step, 255))
 
@@ -158,16 +177,9 @@ class ChunkChecker:
 
     def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         for k, rows, low, high in self._bounded:
-            a = data[k]
-            flat = a.reshape(-1)
-            whole = (a.shape[0] // rows) * low.shape[0]
-            rest = flat[whole:]
-            if whole:  # elementwise min/max across the blocks, then one comparison of a block
-                blocks = flat[:whole].reshape(-1, low.shape[0])
-                if (blocks.min(axis=0) < low).any() or (blocks.max(axis=0) > high).any():
-                    return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
-            if (rest < low[:rest.shape[0]]).any() or (rest > high[:rest.shape[0]]).any():
-                return Rejection("obs_bounds", f"field {k} has values outside the env's observation bounds")
+            bad = _bounds_rejection(k, data[k], rows, low, high)
+            if bad is not None:
+                return bad
         return None
 
     def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
@@ -189,6 +201,125 @@ class ChunkChecker:
                 if a.dtype != want[0] or a.shape[1:] != want[1]:
                     return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {want[0].name}{list(want[1])}")
         return None
+
+
+#: R2D2 sequence fields with one value per step (shape [m] per item), and their dtypes
+SEQUENCE_STEP_FIELDS = {"action": "int64", "reward": "float32", "terminated": "bool", "truncated": "bool",
+                        "mask": "bool"}
+#: the recurrent state a sequence starts from (shape [H] per item, float32)
+SEQUENCE_STATE_FIELDS = ("h", "c")
+#: default bound on |c|, the LSTM's cell state (|h| <= 1 always): |c| grows by at most 1 a step
+DEFAULT_MAX_ABS_CELL = 1e6
+
+
+class SequenceChecker:
+    """Checks one chunk of R2D2 sequences (one item = one sequence of m steps, as cut by
+    :mod:`zenrl.actor.sequences`) against the run's env spec and bounds, with the interface of
+    :class:`ChunkChecker` (``check``, ``check_fields``, ``check_scalars``, ``check_frames``).
+
+    Fields of one item: ``obs`` / ``obs/<key>`` [m+1, ...] of the env's dtype and shape;
+    ``action`` int64[m], ``reward`` float32[m], ``terminated``/``truncated``/``mask`` bool[m];
+    ``first`` bool[]; ``h``, ``c`` float32[H]. Meaning: every step's action in
+    ``0..n_actions-1`` (padding too: the learner gathers every step), ``mask`` a prefix of
+    length >= 1 (the valid steps), an episode's end (terminated or truncated) only at a
+    sequence's last valid step, ``|reward| <= max_abs_reward``, ``|h| <= 1`` (an LSTM's output)
+    and ``|c| <= max_abs_cell``, the observations s_0..s_len (s_len the one after the last valid
+    step; zeros pad the rest) inside the env's finite ``Box`` bounds, priority bound. Frame mode
+    is not supported for sequences: a chunk with frames is rejected."""
+
+    def __init__(self, obs_rules: Mapping[str, ObsRule], n_actions: int, length: int, lstm_size: int,
+                 max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True,
+                 max_abs_cell: float = DEFAULT_MAX_ABS_CELL) -> None:
+        if n_actions < 1 or length < 1 or lstm_size < 1:
+            raise ValueError(f"n_actions, length and lstm_size must be >= 1, got {n_actions}, {length}, {lstm_size}")
+        self.n_actions, self.length, self.lstm_size = int(n_actions), int(length), int(lstm_size)
+        self.max_abs_reward, self.max_priority, self.max_abs_cell = float(max_abs_reward), float(max_priority), float(max_abs_cell)
+        self.rules: dict[str, ObsRule] = dict(obs_rules)
+        m = self.length
+        self.required = {**{k: (np.dtype(r.dtype), (m + 1, *r.shape)) for k, r in self.rules.items()},
+                         **{k: (np.dtype(dt), (m,)) for k, dt in SEQUENCE_STEP_FIELDS.items()},
+                         "first": (np.dtype("bool"), ()),
+                         **{k: (np.dtype("float32"), (self.lstm_size,)) for k in SEQUENCE_STATE_FIELDS}}
+        # bounds of one observation; checked on the valid observations gathered as [N, ...]
+        self._bounded = _tiled_bounds(self.rules, check_obs_bounds)
+        self._n_actions = np.uint64(self.n_actions)
+
+    @classmethod
+    def from_spaces(cls, observation_space: Any, action_space: Any, length: int, lstm_size: int,
+                    max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True) -> "SequenceChecker":
+        import gymnasium as gym
+
+        if not isinstance(action_space, gym.spaces.Discrete):
+            raise ValueError(f"zenrl's replay checks need a Discrete action space, got {action_space}")
+        return cls(obs_rules_from_space(observation_space), int(action_space.n), length, lstm_size, max_abs_reward,
+                   max_priority, check_obs_bounds)
+
+    def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None,
+              fields_checked: bool = False) -> Rejection | None:
+        """``None`` if the chunk may be stored, else the first rule it breaks (``fields_checked``:
+        as for :meth:`ChunkChecker.check`)."""
+        if not fields_checked:
+            bad = self.check_fields(data)
+            if bad is not None:
+                return bad
+        return self.check_scalars(data, priorities) or self._check_bounds(data)
+
+    def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
+        """Field names, dtypes and per-item shapes against the env's spec, m and H."""
+        for k, (dt, shape) in self.required.items():
+            a = data.get(k)
+            if a is None:
+                return Rejection("spec", f"field {k} is missing")
+            if a.dtype != dt or a.shape[1:] != shape:
+                return Rejection("obs_dtype" if k in self.rules else "spec",
+                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, a sequence's is {dt.name}{list(shape)}")
+        for k in data:
+            if k not in self.required:
+                return Rejection("spec", f"field {k} is not part of an R2D2 sequence")
+        return None
+
+    def check_scalars(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None) -> Rejection | None:
+        """Every rule but the observation bounds."""
+        act = data["action"]
+        # int64 read as uint64: a negative action becomes huge, so one max covers both ends
+        if act.size and act.view(np.uint64).max() >= self._n_actions:
+            bad = int(act.max()) if int(act.max()) >= self.n_actions else int(act.min())
+            return Rejection("action_range", f"action {bad} is outside 0..{self.n_actions - 1}")
+        mask = data["mask"]
+        if not mask[:, 0].all() or (mask[:, 1:] & ~mask[:, :-1]).any():
+            return Rejection("mask", "a sequence's mask must be a prefix of valid steps, at least one long")
+        done = (data["terminated"] | data["truncated"]) & mask
+        last = mask & ~np.concatenate([mask[:, 1:], np.zeros_like(mask[:, :1])], axis=1)   # the last valid step
+        if (done & ~last).any():
+            return Rejection("done_inside", "an episode ends before a sequence's last valid step")
+        m = float(np.abs(data["reward"]).max())
+        if m > self.max_abs_reward:
+            return Rejection("reward_bound", f"|reward| {m:.3g} exceeds replay.max_abs_reward {self.max_abs_reward:.3g}")
+        h, c = float(np.abs(data["h"]).max()), float(np.abs(data["c"]).max())
+        if h > 1.0 or c > self.max_abs_cell:
+            return Rejection("state_bound", f"|h| {h:.3g} > 1 or |c| {c:.3g} > {self.max_abs_cell:.3g}: not an LSTM's state")
+        if priorities is not None:
+            p = float(priorities.max())
+            if p > self.max_priority:
+                return Rejection("priority_bound", f"priority {p:.3g} exceeds replay.max_priority {self.max_priority:.3g}")
+        return None
+
+    def check_frames(self, frames: Mapping[str, np.ndarray]) -> Rejection | None:
+        return Rejection("fields", "R2D2 sequences carry full observations; frame mode is not supported for them")
+
+    def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
+        if not self._bounded:
+            return None
+        valid = np.concatenate([data["mask"][:, :1], data["mask"]], axis=1)   # s_0..s_len: [B, m+1]
+        for k, rows, low, high in self._bounded:
+            bad = _bounds_rejection(k, data[k][valid], rows, low, high)
+            if bad is not None:
+                return bad
+        return None
+
+
+#: what the replay checks chunks with (one for the run, chosen by its algo: replay/service.py)
+Checker = ChunkChecker | SequenceChecker
 
 
 @dataclass

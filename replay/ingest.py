@@ -30,7 +30,7 @@ from typing import Any, Callable, Sequence
 from zenrl.common import protocol as P
 from zenrl.common.errors import ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
-from zenrl.replay.checks import ChunkChecker, Quarantine
+from zenrl.replay.checks import Checker, Quarantine
 from zenrl.replay.store import Chunk, Store, allocate, check_one
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ class Ingest:
     """Queue, checks and insert of transitions chunks. ``lock`` guards the store (shared with
     sampling and the journal); ``journal`` (or None) gets each inserted chunk."""
 
-    def __init__(self, rcfg: Any, seed: int, max_bytes: int, checker: ChunkChecker | None, lock: threading.Lock,
+    def __init__(self, rcfg: Any, seed: int, max_bytes: int, checker: Checker | None, lock: threading.Lock,
                  journal: Any | None = None) -> None:
         self.rcfg, self.seed, self.max_bytes = rcfg, seed, max_bytes
         self.checker = checker

@@ -34,7 +34,7 @@ from zenrl.common.env_factory import make_env
 from zenrl.common.errors import TransportError
 from zenrl.common.roles import Cadence, RoleLoop, Supervisor, WatchedThread
 from zenrl.common.transport import Node
-from zenrl.replay.checks import ChunkChecker
+from zenrl.replay.checks import Checker, ChunkChecker, SequenceChecker
 from zenrl.replay.ingest import Ingest
 from zenrl.replay.journal import Journal
 from zenrl.replay.sampling import Sampler
@@ -216,11 +216,16 @@ class ReplayService:
                     log.warning("could not declare the quarantine token of %s: %s", src, e)
 
 
-def make_checker(cfg: RunConfig) -> ChunkChecker:
+def make_checker(cfg: RunConfig) -> Checker:
     """The semantic checks for this run's env, built from the config as the learner builds its
-    network (an env is made once to read its spaces, then closed)."""
+    network (an env is made once to read its spaces, then closed): of n-step transitions, or of
+    sequences for ``algo: r2d2``."""
     env = make_env(cfg.env)
     try:
+        if cfg.algo == "r2d2":
+            return SequenceChecker.from_spaces(env.observation_space, env.action_space, cfg.r2d2.sequence_length,
+                                               cfg.r2d2.lstm_size, cfg.replay.max_abs_reward, cfg.replay.max_priority,
+                                               cfg.replay.check_obs_bounds)
         return ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
                                         cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds)
     finally:

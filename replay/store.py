@@ -29,7 +29,7 @@ from zenrl.common import protocol as P
 from zenrl.common.errors import SpecMismatch
 from zenrl.common.specs import spec_of_batch
 from zenrl.replay.buffer import InMemoryReplay
-from zenrl.replay.checks import ChunkChecker, Rejection
+from zenrl.replay.checks import Checker, Rejection
 from zenrl.replay.frames import FrameChunk, FrameReplay
 
 log = logging.getLogger(__name__)
@@ -76,14 +76,14 @@ class Store(Protocol):
 
     def fits(self, c: Chunk) -> str: ...
 
-    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]: ...
+    def check(self, checker: Checker, chunks: Sequence[Chunk]) -> list[Rejection | None]: ...
 
     def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]: ...
 
     def stats(self) -> dict[str, Any]: ...
 
 
-def check_one(checker: ChunkChecker, c: Chunk) -> Rejection | None:
+def check_one(checker: Checker, c: Chunk) -> Rejection | None:
     """The semantic checks of one chunk alone, for either kind of storage."""
     if c.msg.frames is None:
         return checker.check(c.msg.data, c.msg.priorities)
@@ -133,7 +133,7 @@ class PlainStore:
                 return f"field {k}: {a.dtype.name}{list(a.shape[1:])} differs from the replay's {dt.name}{list(shape)}"
         return ""
 
-    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
+    def check(self, checker: Checker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
         """One check of the combined batch; only when it fails are the chunks checked one by one
         to find the bad ones."""
         data, prios = self._combine(chunks)
@@ -197,7 +197,7 @@ class FrameStore:
         # the frame layout itself is checked by FrameReplay when the chunk is inserted
         return "" if c.msg.frames is not None else "a chunk of full observations, but this replay stores frames (frame mode)"
 
-    def check(self, checker: ChunkChecker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
+    def check(self, checker: Checker, chunks: Sequence[Chunk]) -> list[Rejection | None]:
         return [check_one(checker, c) for c in chunks]
 
     def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]:

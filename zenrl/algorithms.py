@@ -65,6 +65,16 @@ A3C = Algorithm("a3c", network=ActorCritic, learner=A3CLearner, actor=run_a3c_wo
 #: every algorithm, by ``RunConfig.algo``
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (APEX, A3C)}
 
+# R2D2: recurrent Ape-X (sequences in the replay)
+from zenrl.actor.r2d2 import run_r2d2_actor  # noqa: E402
+from zenrl.common.checkpoints import R2D2TrainingState  # noqa: E402
+from zenrl.common.recurrent import RecurrentQNetwork  # noqa: E402
+from zenrl.learner.r2d2 import R2D2Learner  # noqa: E402
+
+R2D2 = Algorithm("r2d2", network=RecurrentQNetwork, learner=R2D2Learner, actor=run_r2d2_actor,
+                 checkpoint=R2D2TrainingState, uses_replay=True, places_learner=True)
+ALGORITHMS[R2D2.name] = R2D2
+
 
 def algorithm(name: str) -> Algorithm:
     """The algorithm called ``name`` (``RunConfig.algo`` is validated to be one of them)."""

@@ -51,6 +51,13 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
 }
+# R2D2's section: the replay checks sequences of its length and state size (and must know the
+# algo to check sequences at all), the learner and actors build the recurrent network and its
+# sequences, the evaluator its network
+for _role, _extra in {"replay": ("algo", "r2d2"), "learner": ("r2d2",), "actor": ("r2d2",),
+                      "evaluator": ("r2d2",)}.items():
+    ROLE_OPTIONS[_role] += _extra
+del _role, _extra
 
 
 def _options_epilog(role: str | None = None) -> str:

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from zenrl.common.checkpoints import (TRAINING_STATES, A3CTrainingState, ApexTrainingState, TrainingState,
-                                     training_state_class)
+from zenrl.common.checkpoints import (TRAINING_STATES, A3CTrainingState, ApexTrainingState, R2D2TrainingState,
+                                     TrainingState, training_state_class)
 from zenrl.common.config import load_config
 from zenrl.common.errors import CheckpointError
 from zenrl.common.specs import ArraySpec
@@ -143,6 +143,18 @@ def _train_one_step(svc) -> None:
     if svc.schema is ApexTrainingState:
         data, w = _batch(1, B=16)
         m, prios = svc.dqn.update(svc.dqn.batch_to_tensors(data, w))
+        assert prios is not None
+        svc.transitions_consumed += len(prios)
+        svc.version = 3
+    elif svc.schema is R2D2TrainingState:
+        m, B = svc.cfg.r2d2.sequence_length, 4
+        rng = np.random.default_rng(1)
+        data = {"obs": rng.normal(size=(B, m + 1, 4)).astype(np.float32), "action": rng.integers(0, 2, (B, m)),
+                "reward": np.ones((B, m), np.float32), "terminated": np.zeros((B, m), bool),
+                "mask": np.ones((B, m), bool), "first": np.array([True, False, False, True]),
+                "h": np.zeros((B, svc.cfg.r2d2.lstm_size), np.float32),
+                "c": np.zeros((B, svc.cfg.r2d2.lstm_size), np.float32)}
+        m_, prios = svc.dqn.update(svc.dqn.batch_to_tensors(data, np.ones(B, np.float32)))
         assert prios is not None
         svc.transitions_consumed += len(prios)
         svc.version = 3

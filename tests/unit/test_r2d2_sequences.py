@@ -181,3 +181,31 @@ def test_rejects_bad_lengths():
         SequenceBuilder(2, 5, 1, 0.9)
     with pytest.raises(ValueError):
         SequenceBuilder(2, 6, 1, 0.9, burn_in=4)
+
+
+def test_a_step_both_terminated_and_truncated_is_terminal():
+    """A time limit reached on the step the episode terminates (gymnasium sets both flags): the
+    sequence is terminal, as the learner's loss reads it: no final Q asked, none bootstrapped."""
+    b = SequenceBuilder(1, M, N, GAMMA, burn_in=0)
+    calls = []
+
+    def final_q(idx):
+        calls.append(idx.tolist())
+        return np.full((len(idx), A), 50.0, np.float32)
+
+    obs = {"obs": np.zeros((1, 2), np.float32)}
+    q = np.ones((1, A), np.float32)
+    state = (np.zeros((1, H), np.float32), np.zeros((1, H), np.float32))
+    blk = None
+    for t in range(3):
+        done = np.array([t == 2])
+        blk = b.add(obs, q, state, np.zeros(1, np.int64), np.ones(1, np.float32), obs, done, done, final_q)
+    assert calls == [] and blk is not None and len(blk) == 1
+    assert (blk.q[0, 3] == 0).all()  # the bootstrap row: zero, as after any terminal step
+    y = []
+    for t in range(3):  # Q = 1 everywhere: V = 1 where the bootstrap is inside, 0 at the terminal s_3
+        j = min(N, 3 - t)
+        v = inverse_value_rescale(1.0) if t + j < 3 else 0.0
+        y.append(value_rescale(sum(GAMMA ** i for i in range(j)) + GAMMA ** j * v))
+    want = np.abs(1.0 - np.array(y))
+    np.testing.assert_allclose(blk.priorities[0], 0.9 * want.max() + 0.1 * want.mean(), rtol=1e-5)

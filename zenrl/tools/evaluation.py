@@ -90,9 +90,13 @@ class EpisodeRunner:
 
     def run(self, job: Job) -> EpisodeResult:
         self.policy.reseed(job.seed)  # a sampled episode depends on its job only, not on the worker
+        self.policy.reset()  # a recurrent policy starts the episode from a zero state
         options = {}
         if job.opponent in self.frozen:
             self.switch.current = self.frozen[job.opponent]
+            reset = getattr(self.switch.current, "reset", None)  # a player is any obs -> action callable
+            if reset is not None:
+                reset()
             options = {"opponent": "policy", "side": job.side}
         elif job.opponent is not None:
             options = {"opponent": job.opponent, "side": job.side}

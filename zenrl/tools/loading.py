@@ -120,6 +120,9 @@ class ExportedPlayer:
     def reseed(self, seed: int | None) -> None:
         """Nothing to reseed: the exported policy is greedy."""
 
+    def reset(self) -> None:
+        """Nothing to reset: an exported policy has no state between observations."""
+
     def __call__(self, obs: Any) -> int:
         with torch.no_grad():
             if self.dict_obs:

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from zenrl.common.errors import ZenrlError
+from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.tools.loading import env_config_for, is_exported, is_match_env, load_policy_env, resolve_checkpoint
 
 class ExportedPolicy(torch.nn.Module):
@@ -54,6 +55,9 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
         raise ZenrlError(f"{checkpoint} is already an exported policy; export takes a checkpoint")
     policy, env, cfg = load_policy_env(checkpoint, env_id, env_kwargs)
     try:
+        if isinstance(policy.net, RecurrentQNetwork):
+            raise ZenrlError(f"{checkpoint}: a recurrent ({cfg.algo}) policy cannot be exported yet: the exported "
+                             "call takes one observation and would have to carry the LSTM state between calls")
         space = env.observation_space
         dict_obs = isinstance(space, gym.spaces.Dict)
         keys = list(space.spaces) if dict_obs else ["obs"]

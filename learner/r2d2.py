@@ -1,0 +1,146 @@
+"""R2D2 learner (``zenrl learner`` with ``algo: r2d2``): Ape-X's learner loop on sequences.
+
+:class:`R2D2Core` is the learning step with no I/O, :class:`~zenrl.learner.dqn.DQNLearner`'s
+counterpart: online and target :class:`~zenrl.common.recurrent.RecurrentQNetwork`, optimizer,
+the R2D2 loss (:mod:`zenrl.learner.r2d2_loss`: burn-in from the stored state without gradient,
+n-step double-Q on value-rescaled Q, the mixed sequence priority), gradient clipping, the update
+guard and the target network copy. The regression is a squared error on the rescaled values, as
+in the paper (the rescaling keeps its scale small); ``learner.huber_delta`` is Ape-X's.
+
+:class:`R2D2Learner` is :class:`~zenrl.learner.apex.ApexLearner` with that core: the same
+prefetcher (replay items are sequences here), priorities back from the watched sender, weights
+broadcast and queryable, guard and rollback, checkpoints (schema
+:class:`~zenrl.common.checkpoints.R2D2TrainingState`) and resume. Its stats name sequences
+where Ape-X's name transitions (``sequences_per_s``, ``sequences_consumed``) and add the steps
+trained (``trained_steps_per_s``).
+
+Batch layout (item-major, B sequences of m steps; see :mod:`zenrl.learner.r2d2_loss`)::
+
+    obs/*  [B, m+1, ...]   action int64[B, m]   reward float32[B, m]   terminated bool[B, m]
+    mask   bool[B, m]      first  bool[B]       h, c float32[B, H]     weights float32[B]
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from zenrl.common.checkpoints import R2D2TrainingState
+from zenrl.common.config import LearnerConfig, NetworkConfig, R2D2Config, RunConfig
+from zenrl.common.networks import arch_fingerprint, to_tensors
+from zenrl.common.recurrent import RecurrentQNetwork
+from zenrl.common.replay_client import ZenohReplayClient
+from zenrl.common.specs import ArraySpec
+from zenrl.learner.apex import ApexLearner
+from zenrl.learner.base import LearnerBase
+from zenrl.learner.dqn import DQNLearner
+from zenrl.learner.guard import UpdateGuard
+from zenrl.learner.r2d2_loss import r2d2_loss
+
+log = logging.getLogger(__name__)
+
+#: the sampled fields the loss reads besides the observations
+BATCH_FIELDS = ("action", "reward", "terminated", "mask", "first", "h", "c")
+
+
+class R2D2Core(DQNLearner):
+    """Online and target recurrent Q networks plus optimizer; :meth:`update` is one step on a
+    batch of sequences. Beta's schedule, the parameter check, ``state_dict`` and
+    ``load_state_dict`` are :class:`DQNLearner`'s (the same attributes: ``online``, ``target``,
+    ``opt``, ``updates``, ``guard``)."""
+
+    def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig, cfg: LearnerConfig,
+                 rcfg: R2D2Config, device: torch.device) -> None:
+        # DQNLearner's attributes, with recurrent networks (its constructor builds feed-forward ones)
+        self.cfg, self.rcfg, self.device = cfg, rcfg, device
+        self.obs_spec = {k: v for k, v in spec.items() if k == "obs" or k.startswith("obs/")}
+        self.online = RecurrentQNetwork(self.obs_spec, n_actions, net_cfg, rcfg.lstm_size).to(device)
+        self.target = RecurrentQNetwork(self.obs_spec, n_actions, net_cfg, rcfg.lstm_size).to(device)
+        self.target.load_state_dict(self.online.state_dict())
+        self.target.requires_grad_(False)
+        self._fused = cfg.optimizer == "adam" and device.type in ("cpu", "cuda")
+        if cfg.optimizer == "adam":
+            self.opt: torch.optim.Optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps,
+                                                               fused=self._fused)
+        else:
+            self.opt = torch.optim.RMSprop(self.online.parameters(), lr=cfg.lr, alpha=0.95, eps=0.01, centered=True)
+        self.n_actions = int(n_actions)
+        self.updates = 0
+        self.guard = UpdateGuard(cfg.guard_max_bad_updates, cfg.guard_log_interval_s)
+
+    def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
+        """Tensors for :meth:`update`. Raises ValueError for an action index the network does not
+        have (``gather`` would crash the step, or assert on CUDA and poison the context)."""
+        a = data["action"]
+        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
+            raise ValueError(f"batch has action {int(a.max()) if int(a.max()) >= self.n_actions else int(a.min())} "
+                             f"outside 0..{self.n_actions - 1}")
+        t = to_tensors({k: data[k] for k in (*self.obs_spec, *BATCH_FIELDS)}, self.device)
+        t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
+        return t
+
+    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
+        """One step on a batch from :meth:`batch_to_tensors`; returns (metrics, new priorities
+        float32[B], the mixed priority of each sequence). A non-finite loss or gradient skips
+        the step (see :attr:`guard`): metrics are then empty and priorities ``None``."""
+        r = self.rcfg
+        res = r2d2_loss(self.online, self.target, b, burn_in=r.burn_in, n_step=r.n_step, gamma=self.cfg.gamma,
+                        eps=r.value_rescale_eps, eta=r.eta, train_episode_starts=r.train_episode_starts)
+        self.opt.zero_grad(set_to_none=True)
+        res.loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        loss_v, norm_v = float(res.loss.item()), float(grad_norm.item())
+        if not self.guard.accept(loss_v, norm_v):
+            self.opt.zero_grad(set_to_none=True)
+            return {}, None
+        self.opt.step()
+        self.updates += 1
+        if self.updates % self.cfg.target_update_period == 0:
+            self.target.load_state_dict(self.online.state_dict())
+        metrics = {"loss": loss_v, "q_mean": res.q_mean, "grad_norm": norm_v,
+                   "trained_steps": float(res.trained.sum().item())}
+        return metrics, res.priorities.detach().cpu().numpy().astype(np.float32)
+
+
+class R2D2Learner(ApexLearner):
+    """The R2D2 learner as a :class:`~zenrl.common.roles.Worker` (see the module docstring)."""
+
+    schema = R2D2TrainingState
+
+    def __init__(self, cfg: RunConfig, node: Any, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
+        # ApexLearner's constructor with R2D2's core in place of the DQN learner
+        LearnerBase.__init__(self, cfg, node, run_id, learner_id)
+        self.dqn = R2D2Core(self.spec, self.n_actions, cfg.network, cfg.learner, cfg.r2d2, self.device)
+        self.arch = arch_fingerprint(self.dqn.online)
+        self.version = 0
+        self.transitions_consumed = 0  # ApexLearner's count of sampled items: sequences here
+        self._latest_weights: bytes | None = None
+        self._steps_acc = 0.0
+        if self.wants_resume(resume):
+            self.restore()
+        self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s,
+                                        cfg.transport.max_message_bytes)
+
+    def training_state(self) -> R2D2TrainingState:
+        return R2D2TrainingState(**self.base_fields(self.version), learner=self.dqn.state_dict(),
+                                 sequences_consumed=self.transitions_consumed)
+
+    def load_training_state(self, state: R2D2TrainingState) -> None:  # type: ignore[override]
+        self.dqn.load_state_dict(state.learner)
+        self.version = self.versions.resume_version(state.version)
+        self.transitions_consumed = int(state.sequences_consumed)
+
+    def report(self, interval_s: float) -> tuple[dict[str, Any], str | None]:
+        n = max(self._n_acc, 1)
+        steps = self._acc.get("trained_steps", 0.0)
+        vals, line = super().report(interval_s)
+        vals.pop("trained_steps", None)
+        vals["sequences_per_s"] = vals.pop("transitions_per_s")
+        vals["sequences_consumed"] = vals.pop("transitions_consumed")
+        vals["trained_steps_per_s"] = steps / max(interval_s, 1e-9)
+        vals["trained_steps_per_sequence"] = steps / n / max(self.cfg.learner.batch_size, 1)
+        return vals, line
