@@ -38,7 +38,7 @@ class ApexLearner(LearnerBase):
 
     def __init__(self, cfg: RunConfig, node: Node, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
         super().__init__(cfg, node, run_id, learner_id)
-        self.dqn = DQNLearner(self.spec, self.n_actions, cfg.network, cfg.learner, self.device)
+        self.dqn = self.make_core()
         self.arch = arch_fingerprint(self.dqn.online)
         self.version = 0
         self.transitions_consumed = 0
@@ -46,6 +46,10 @@ class ApexLearner(LearnerBase):
         if self.wants_resume(resume):
             self.restore()
         self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
+
+    def make_core(self) -> DQNLearner:
+        """The learning step this learner drives (R2D2 gives its recurrent one)."""
+        return DQNLearner(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.device)
 
     @property
     def updates(self) -> int:

@@ -31,12 +31,10 @@ from torch import nn
 
 from zenrl.common.checkpoints import R2D2TrainingState
 from zenrl.common.config import LearnerConfig, NetworkConfig, R2D2Config, RunConfig
-from zenrl.common.networks import arch_fingerprint, to_tensors
+from zenrl.common.networks import to_tensors
 from zenrl.common.recurrent import RecurrentQNetwork
-from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.apex import ApexLearner
-from zenrl.learner.base import LearnerBase
 from zenrl.learner.dqn import DQNLearner
 from zenrl.learner.guard import UpdateGuard
 from zenrl.learner.r2d2_loss import r2d2_loss
@@ -112,18 +110,11 @@ class R2D2Learner(ApexLearner):
     schema = R2D2TrainingState
 
     def __init__(self, cfg: RunConfig, node: Any, run_id: str, resume: str = "never", learner_id: str = "learner") -> None:
-        # ApexLearner's constructor with R2D2's core in place of the DQN learner
-        LearnerBase.__init__(self, cfg, node, run_id, learner_id)
-        self.dqn = R2D2Core(self.spec, self.n_actions, cfg.network, cfg.learner, cfg.r2d2, self.device)
-        self.arch = arch_fingerprint(self.dqn.online)
-        self.version = 0
-        self.transitions_consumed = 0  # ApexLearner's count of sampled items: sequences here
-        self._latest_weights: bytes | None = None
         self._steps_acc = 0.0
-        if self.wants_resume(resume):
-            self.restore()
-        self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s,
-                                        cfg.transport.max_message_bytes)
+        super().__init__(cfg, node, run_id, resume, learner_id)  # transitions_consumed counts sequences here
+
+    def make_core(self) -> R2D2Core:
+        return R2D2Core(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.cfg.r2d2, self.device)
 
     def training_state(self) -> R2D2TrainingState:
         return R2D2TrainingState(**self.base_fields(self.version), learner=self.dqn.state_dict(),
