@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 CPUS_ENV = "ZENRL_CPUS"
 NICE_ENV = "ZENRL_NICE"
 ACTOR_NICE = 5
+#: the exporter yields to every role that trains: monitoring must not cost training time
+EXPORTER_NICE = 10
 MAX_CPUS_AUTO = 4  # measured on 2 CPUs only; larger machines are left to the OS
 
 
@@ -56,7 +58,7 @@ def usable_cpus() -> list[int]:
 
 
 def plan(mode: str, places_learner: bool, learner_threads: int, cpus: list[int]) -> dict[str, Placement] | None:
-    """Placement per role (``learner``, ``actor``, ``replay``, ``evaluator``, and ``router``: the
+    """Placement per role (``learner``, ``actor``, ``replay``, ``evaluator``, ``exporter``, and ``router``: the
     launcher's own Zenoh router), or None when
     ``mode`` is ``off``, the algorithm does not place its learner (A3C), affinity is unsupported, or ``cpus`` has more
     than :data:`MAX_CPUS_AUTO` or not more than ``learner_threads`` CPUs."""
@@ -67,7 +69,8 @@ def plan(mode: str, places_learner: bool, learner_threads: int, cpus: list[int])
     learner = tuple(cpus[-learner_threads:])
     rest = tuple(cpus[:-learner_threads])
     return {"learner": Placement(learner), "actor": Placement(rest, ACTOR_NICE),
-            "replay": Placement(rest), "evaluator": Placement(rest), "router": Placement(rest)}
+            "replay": Placement(rest), "evaluator": Placement(rest), "router": Placement(rest),
+            "exporter": Placement(rest, EXPORTER_NICE)}
 
 
 def describe(p: dict[str, Placement]) -> str:

@@ -165,9 +165,8 @@ class Launcher:
         # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
         # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
-        placed = "evaluator" if c.role == "exporter" else c.role  # the exporter: off the learner's CPUs
-        if self.placement is not None and placed in self.placement:
-            env.update(self.placement[placed].env())
+        if self.placement is not None and c.role in self.placement:
+            env.update(self.placement[c.role].env())
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
