@@ -111,6 +111,9 @@ class PlainStore:
         #: its values checked
         self.vetted = vetted
         self._sig = {k: (v.shape, np.dtype(v.dtype)) for k, v in buffer.spec.items()}
+        #: the batch :meth:`check` combined, kept for the :meth:`insert` of the same chunks that
+        #: follows it (concatenating a batch of chunks twice costs as much as the checks)
+        self._combined: tuple[tuple[int, ...], dict[str, np.ndarray], np.ndarray | None] | None = None
 
     @classmethod
     def allocate(cls, c: Chunk, rcfg: Any, seed: int, vetted: bool) -> "PlainStore":
@@ -137,6 +140,7 @@ class PlainStore:
         """One check of the combined batch; only when it fails are the chunks checked one by one
         to find the bad ones."""
         data, prios = self._combine(chunks)
+        self._combined = (tuple(map(id, chunks)), data, prios)
         if not self.vetted:
             data = {k: v for k, v in data.items() if k != POLICY_VERSION_FIELD}
         if checker.check(data, prios, fields_checked=self.vetted) is None:
@@ -144,7 +148,11 @@ class PlainStore:
         return [check_one(checker, c) for c in chunks]
 
     def insert(self, chunks: Sequence[Chunk]) -> list[Stored | SpecMismatch | ValueError]:
-        data, prios = self._combine(chunks)
+        cached, self._combined = self._combined, None
+        if cached is not None and cached[0] == tuple(map(id, chunks)):
+            data, prios = cached[1], cached[2]
+        else:
+            data, prios = self._combine(chunks)
         try:
             keys = self.buffer.insert(data, prios)
         except (SpecMismatch, ValueError) as e:
