@@ -44,10 +44,10 @@ def quiet_zenoh(level: str) -> None:
 #: ``section.field`` (a role's ``--help`` lists these; ``zenrl run`` passes every option on).
 ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "replay": ("run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step"),
-    "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "network", "env", "transport",
-                "actor.num_actors"),
-    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "selfplay", "network", "env", "transport",
-              "learner.gamma"),
+    "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "network", "env",
+                "transport", "actor.num_actors"),
+    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "selfplay", "network", "env",
+              "transport", "learner.gamma"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "network", "env", "transport"),
 }
 
