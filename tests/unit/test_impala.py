@@ -113,7 +113,7 @@ def test_published_unrolls_are_exactly_the_env_steps(tmp_path):
             # the behaviour log-probabilities are those of the network acted with
             with torch.no_grad():
                 logp = F.log_softmax(net({"obs": torch.as_tensor(np.array(u.obs["obs"][:T]))})[0], 1)
-            np.testing.assert_allclose(u.behaviour_logp, logp[torch.arange(T), torch.as_tensor(u.action)].numpy(),
+            np.testing.assert_allclose(u.behaviour_logp, logp[torch.arange(T), torch.as_tensor(np.array(u.action))].numpy(),
                                        rtol=1e-4, atol=1e-5)
     assert cuts > 0 and terms > 0, "the unrolls should hold truncations and terminations"
     stats = P.Stats.decode(node.sent(P.Keys("t").stats("actor", "a0"))[-1]).values
