@@ -190,8 +190,10 @@ def _params(net):
     return [p.detach().clone() for p in net.parameters()]
 
 
-def test_learner_updates_on_batches_and_broadcasts(tmp_path):
-    svc = ImpalaLearner(_cfg(tmp_path), None, "t")
+@pytest.mark.parametrize("clip_eps", [None, 0.2])
+def test_learner_updates_on_batches_and_broadcasts(tmp_path, clip_eps):
+    svc = ImpalaLearner(_cfg(tmp_path, **{"impala.clip_eps": "null" if clip_eps is None else clip_eps}), None, "t")
+    assert svc.loss_params.clip_eps == clip_eps  # APPO's clipped objective, or IMPALA's
     svc.start_offline()
     assert svc.version == 1
     assert _feed(svc, 3, trunc_at=(5,), term_at=(9,)) == ["queued"] * 3
