@@ -6,6 +6,8 @@ sends what its algorithm learns from.
   (:mod:`zenrl.actor.nstep`) in chunks to the replay (``transitions/<id>``).
 * :class:`RolloutGradients` (A3C): t_max-step rollouts turned into gradients of the A3C loss
   (:mod:`zenrl.common.a3c_loss`) on ``gradients/<id>``.
+* :class:`UnrollsToLearner` (IMPALA): every T batched steps, one
+  :class:`~zenrl.common.protocol.Unroll` per env on ``unrolls/<id>``.
 * :class:`EvalEpisodes` (evaluation): one episode per env per round, its returns (and match
   outcomes) as an :class:`~zenrl.common.protocol.EvalResult` on ``eval`` and in the metrics.
 """
@@ -166,6 +168,71 @@ class RolloutGradients:
         self._acc, self._n_acc = {}, 0
         vals["sent_gradients"] = self.sent_gradients
         return vals
+
+
+class UnrollsToLearner:
+    """IMPALA: keeps the last T batched steps and, every T steps, publishes one
+    :class:`~zenrl.common.protocol.Unroll` per env on ``unrolls/<id>`` (E messages, env order):
+    the T + 1 observations (the T acted on, then the one after the last step, which the next
+    unroll starts from), the actions, the behaviour log-probabilities (the policy's extras,
+    float32[E] per step), rewards, terminations, truncations, the true final observations of
+    the truncated (not terminated) steps, and ``version()`` when the unroll's first step was
+    taken (the oldest policy in it: the learner's lag check errs on the stale side). ``codec``
+    "lz4" compresses uint8 observation arrays. A partial unroll is dropped on stop (the learner
+    takes unrolls of exactly T steps)."""
+
+    def __init__(self, keys: P.Keys, actor_id: str, unroll_length: int, version: Callable[[], int],
+                 max_bytes: int, codec: str | None = None) -> None:
+        self.keys, self.id, self.T = keys, actor_id, unroll_length
+        self.version, self.max_bytes, self.codec = version, max_bytes, codec
+        self.sent_unrolls = self.sent_bytes = self.seq = 0
+        self._steps: list[tuple[Obs, np.ndarray, np.ndarray, StepResult]] = []
+        self._first_version = -1
+        self._pub: Any = None
+
+    def start(self, node: Any) -> None:
+        self._pub = node.publisher(self.keys.unrolls(self.id))
+
+    def add(self, obs: Obs, actions: np.ndarray, extras: np.ndarray, res: StepResult) -> bool:
+        if not self._steps:
+            self._first_version = self.version()
+        self._steps.append((obs, actions, extras, res))
+        if len(self._steps) == self.T:
+            steps, self._steps = self._steps, []
+            for u in self.unrolls(steps):
+                payload = u.encode(self.max_bytes, self.codec)
+                self._pub.put(payload)
+                self.sent_unrolls += 1
+                self.sent_bytes += len(payload)
+        return False
+
+    def unrolls(self, steps: list[tuple[Obs, np.ndarray, np.ndarray, StepResult]]) -> list[P.Unroll]:
+        """The E unrolls of T recorded batched steps ``(obs, actions, logp, result)``."""
+        E = len(steps[0][1])
+        obs = {k: np.stack([o[k] for o, _, _, _ in steps] + [steps[-1][3].obs[k]]) for k in steps[0][0]}  # [T+1, E, ...]
+        act = np.stack([np.asarray(a, np.int64) for _, a, _, _ in steps])
+        logp = np.stack([np.asarray(lp, np.float32) for _, _, lp, _ in steps])
+        rew = np.stack([np.asarray(r.rewards, np.float32) for _, _, _, r in steps])
+        term = np.stack([r.terminated for _, _, _, r in steps])
+        trunc = np.stack([r.truncated for _, _, _, r in steps])
+        cut = trunc & ~term
+        out = []
+        for e in range(E):
+            ts = np.flatnonzero(cut[:, e])
+            final = {k: np.stack([steps[t][3].next_obs[k][e] for t in ts]) for k in obs} if ts.size else None
+            out.append(P.Unroll(actor_id=self.id, policy_version=int(self._first_version), seq=self.seq,
+                                obs={k: np.ascontiguousarray(v[:, e]) for k, v in obs.items()},
+                                action=np.ascontiguousarray(act[:, e]), behaviour_logp=np.ascontiguousarray(logp[:, e]),
+                                reward=np.ascontiguousarray(rew[:, e]), terminated=np.ascontiguousarray(term[:, e]),
+                                truncated=np.ascontiguousarray(trunc[:, e]), final_obs=final))
+            self.seq += 1
+        return out
+
+    def flush(self) -> None:
+        self._steps = []  # a partial unroll is not one the learner takes
+
+    def values(self) -> dict[str, Any]:
+        return {"sent_unrolls": self.sent_unrolls, "sent_bytes": self.sent_bytes}
 
 
 class EvalEpisodes:

@@ -3,7 +3,8 @@
 
 * :class:`EpsilonGreedyQ` (Ape-X): per-env epsilon from the Ape-X ladder over argmax Q; the Q
   values go to the adder, which reuses them for the initial priorities.
-* :class:`Sampling` (A3C): actions drawn from an actor-critic's softmax policy.
+* :class:`Sampling` (A3C, IMPALA): actions drawn from an actor-critic's softmax policy; with
+  ``with_logp`` (IMPALA) the extras are the behaviour log-probabilities of the actions drawn.
 * :class:`Greedy` (evaluation): argmax of the Q values or of the policy logits.
 * :class:`RecurrentEpsilonGreedyQ` (R2D2) and :class:`RecurrentGreedy` (its evaluation): the
   same over a recurrent Q network, with a state per env zeroed where an episode begins
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 
 from zenrl.common.exploration import EpsilonGreedy
-from zenrl.common.networks import NumpyQ, to_tensors
+from zenrl.common.networks import NumpyQ, sample_categorical, to_tensors
 from zenrl.common.policy_io import greedy_actions, sampled_actions
 from zenrl.common.recurrent import NumpyRecurrentQ, RecurrentQNetwork
 
@@ -125,20 +126,38 @@ class Greedy:
 
 class Sampling:
     """Actions drawn from an actor-critic's categorical policy (A3C acting; evaluation with
-    ``evaluator.policy: sample``), with ``epsilon`` uniform actions. No extras."""
+    ``evaluator.policy: sample``), with ``epsilon`` uniform actions. No extras, unless
+    ``with_logp`` (IMPALA): then the extras are float32[E] ``log mu(a|x)``, the log-probability
+    of each action under the policy that drew it (the epsilon mixture included), which the
+    learner's V-trace corrects with. ``use_numpy``: an MLP network's logits come from the numpy
+    forward (:class:`QForward`), the Gumbel-max draw from the same float64 logits either way."""
 
-    def __init__(self, net: torch.nn.Module, n_actions: int, rng: np.random.Generator, epsilon: float = 0.0) -> None:
+    def __init__(self, net: torch.nn.Module, n_actions: int, rng: np.random.Generator, epsilon: float = 0.0,
+                 use_numpy: bool = False, with_logp: bool = False) -> None:
         self.net = net
         self.n_actions, self.epsilon, self.rng = n_actions, epsilon, rng
+        self.with_logp = with_logp
+        self.q = QForward(net, use_numpy) if (use_numpy or with_logp) else None
 
     def sync(self) -> None:
-        pass  # acts with torch: nothing to copy
+        if self.q is not None:
+            self.q.sync()
 
     def reseed(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
 
-    def act(self, obs: Obs) -> tuple[np.ndarray, None]:
-        return _explore(sampled_actions(self.net, obs, self.rng), self.epsilon, self.n_actions, self.rng), None
+    def act(self, obs: Obs) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.q is None:
+            return _explore(sampled_actions(self.net, obs, self.rng), self.epsilon, self.n_actions, self.rng), None
+        z = self.q(obs).astype(np.float64)
+        a = _explore(sample_categorical(z, self.rng), self.epsilon, self.n_actions, self.rng)
+        if not self.with_logp:
+            return a, None
+        z -= z.max(axis=1, keepdims=True)
+        logp = z[np.arange(len(a)), a] - np.log(np.exp(z).sum(axis=1))
+        if self.epsilon > 0:  # a ~ (1 - eps) pi + eps uniform
+            logp = np.log((1.0 - self.epsilon) * np.exp(logp) + self.epsilon / self.n_actions)
+        return a, logp.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,6 +12,12 @@ SB3 seed 0, zenrl seed 1, ...) so that machine noise hits both alike.
   a callback plays 10 greedy (``deterministic=True``) episodes on separate seeds (the same
   seed scheme as zenrl's evaluator: seed + 1,000,000 + 10 * round + i).
 
+``--algo impala`` runs zenrl IMPALA, zenrl A3C and SB3 A2C in the same run (seeds
+interleaved: impala 0, a3c 0, A2C 0, impala 1, ...), and then measures the env steps each zenrl
+learner *consumes* per second (trains on: T * B per IMPALA update, the rollout's steps per A3C
+gradient): one run of ``--throughput-s`` seconds per algorithm, no target, no evaluator; the
+median of the learner's ``env_steps_per_s`` stats over its reports after its first update.
+
 Reported (the last stdout line is one JSON object; progress goes to stderr):
   ``median_ratio_vs_sb3`` (apex) / ``median_ratio_vs_sb3_a2c`` (a3c): median zenrl solve time /
   median SB3 solve time (an unsolved seed counts as infinitely slow; null if a median is
@@ -21,6 +27,7 @@ Reported (the last stdout line is one JSON object; progress goes to stderr):
 
     python bench/time_to_solve.py --algo a3c             # 3 seeds each (minutes)
     python bench/time_to_solve.py --algo apex --quick    # 1 seed each, capped time
+    python bench/time_to_solve.py --algo impala          # IMPALA vs A3C vs SB3 A2C, + consumption
 """
 
 from __future__ import annotations
@@ -91,8 +98,37 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
     out = {"seed": seed, "solved": bool(s["solved"]), "solve_s": s["solve_s_since_first_step"],
            "startup_s": s["startup_s"], "env_steps": s["env_steps"], "env_steps_per_s": sps,
            "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),
+           "env_steps_trained": (s.get("learner") or {}).get("env_steps_trained"),
            "returncode": p.returncode, "process_s": time.monotonic() - t0}
     log(f"zenrl {algo} seed {seed}: {json.dumps(out)}")
+    return out
+
+
+def learner_consumption(algo: str, seconds: float, runs_dir: Path, sets: list[str] | None = None) -> dict[str, Any]:
+    """Env steps per second the zenrl learner trains on, over a run of ``seconds`` (no target,
+    no evaluator): the median of its ``env_steps_per_s`` reports after the first update."""
+    run_id = f"tput-{algo}-{os.getpid()}"
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(ROOT / "configs" / f"cartpole_{algo}.yaml"),
+           "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
+           "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", "target_return=null",
+           "--set", "evaluator.enabled=false", "--set", f"max_wall_s={seconds}"]
+    for kv in sets or []:
+        cmd += ["--set", kv]
+    subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds + 300)
+    rates = []
+    metrics = runs_dir / run_id / "metrics.jsonl"
+    if metrics.is_file():
+        for line in metrics.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except ValueError:
+                continue
+            if row.get("source") == "learner" and row.get("step", 0) > 0 and row.get("env_steps_per_s"):
+                rates.append(float(row["env_steps_per_s"]))
+    rates = rates[1:]  # the first report's interval holds the start
+    out = {"algo": algo, "seconds": seconds, "reports": len(rates),
+           "median_env_steps_per_s": round(statistics.median(rates), 1) if rates else None}
+    log(f"zenrl {algo} learner consumption: {json.dumps(out)}")
     return out
 
 
@@ -156,7 +192,7 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
             return self.clock() < cap_s
 
     cb = SolveClock()
-    if algo == "apex":
+    if algo == "apex":  # the other algorithms compare with A2C
         hp = {k: v for k, v in ZOO_DQN.items() if k not in ("n_timesteps", "policy")}
         env = gym.make("CartPole-v1")
         model = DQN(ZOO_DQN["policy"], env, seed=seed, device="cpu", verbose=0, **hp)
@@ -177,7 +213,7 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
 # --------------------------------------------------------------------------------------------
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--algo", choices=["apex", "a3c"], default="apex")
+    ap.add_argument("--algo", choices=["apex", "a3c", "impala"], default="apex")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per system (>= 3 for a real comparison)")
     ap.add_argument("--quick", action="store_true", help="1 seed each and --cap-s 240")
     ap.add_argument("--cap-s", type=float, default=900.0, help="wall-clock cap per run (unsolved after it)")
@@ -186,22 +222,32 @@ def main() -> None:
                          "steps between two of zenrl A3C's evaluations: 0.5 s at ~5,000 steps/s)")
     ap.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (zenrl uses 1 per process)")
     ap.add_argument("--skip-sb3", action="store_true", help="only zenrl")
+    ap.add_argument("--skip-a3c", action="store_true", help="--algo impala: no zenrl A3C runs")
+    ap.add_argument("--throughput-s", type=float, default=30.0,
+                    help="--algo impala: seconds of each learner-consumption run (0: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the zenrl runs (repeatable), e.g. --set evaluator.interval_s=1")
     args = ap.parse_args()
     seeds = 1 if args.quick else args.seeds
     cap = min(args.cap_s, 240.0) if args.quick else args.cap_s
     eval_every = args.sb3_eval_every or (1000 if args.algo == "apex" else 2500)
-    zen, sb3 = [], []
+    zen, sb3, a3c = [], [], []
+    consumption: dict[str, Any] = {}
+    with_a3c = args.algo == "impala" and not args.skip_a3c
     with tempfile.TemporaryDirectory(prefix="zenrl-tts-") as tmp:
         for s in range(seeds):
             zen.append(run_zenrl(args.algo, s, cap, Path(tmp), args.set))
+            if with_a3c:
+                a3c.append(run_zenrl("a3c", s, cap, Path(tmp)))
             if not args.skip_sb3:
                 try:
                     sb3.append(run_sb3(args.algo, s, cap, eval_every, args.sb3_threads))
                 except ImportError as e:
                     log(f"stable-baselines3 is not installed ({e}); pip install stable-baselines3")
                     args.skip_sb3 = True
+        if args.algo == "impala" and args.throughput_s > 0:
+            for algo in ["impala"] + (["a3c"] if with_a3c else []):
+                consumption[algo] = learner_consumption(algo, args.throughput_s, Path(tmp), args.set if algo == "impala" else None)
     z_med = median_or_inf([r["solve_s"] for r in zen])
     s_med = median_or_inf([r["solve_s"] for r in sb3]) if sb3 else float("inf")
     ratio = z_med / s_med if z_med != float("inf") and s_med not in (0.0, float("inf")) else None
@@ -210,7 +256,7 @@ def main() -> None:
         "bench": "time_to_solve", "env": "CartPole-v1", "algo": args.algo, "target_return": TARGET,
         "eval_episodes": EVAL_EPISODES, "seeds": seeds, "quick": args.quick, "cap_s": cap,
         "zenrl": {"config": f"configs/cartpole_{args.algo}.yaml", "overrides": args.set, "median_solve_s": finite(z_med), "runs": zen},
-        "sb3": {"algo": "DQN" if args.algo == "apex" else "A2C",
+        "sb3": {"algo": "DQN" if args.algo == "apex" else "A2C",  # a3c and impala: A2C
                 "zoo_hyperparameters": ZOO_DQN if args.algo == "apex" else ZOO_A2C,
                 "eval_every_steps": eval_every, "torch_threads": args.sb3_threads,
                 "median_solve_s": finite(s_med), "runs": sb3} if sb3 else None,
@@ -220,6 +266,15 @@ def main() -> None:
     if args.algo == "apex":
         result["median_ratio_vs_sb3"] = None if ratio is None else round(ratio, 3)
     else:
+        if args.algo == "impala":
+            a_med = median_or_inf([r["solve_s"] for r in a3c]) if a3c else float("inf")
+            result["zenrl_a3c"] = {"config": "configs/cartpole_a3c.yaml", "median_solve_s": finite(a_med),
+                                   "runs": a3c} if a3c else None
+            result["median_ratio_vs_a3c"] = (round(z_med / a_med, 3) if z_med != float("inf")
+                                             and a_med not in (0.0, float("inf")) else None)
+            ci, ca = (consumption.get(k, {}).get("median_env_steps_per_s") for k in ("impala", "a3c"))
+            result["learner_consumption"] = {**consumption,
+                                             "ratio_impala_vs_a3c": round(ci / ca, 3) if ci and ca else None}
         result["median_ratio_vs_sb3_a2c"] = None if ratio is None else round(ratio, 3)
         z_sps = [r["env_steps_per_s"] for r in zen if r["env_steps_per_s"]]
         s_sps = [r["env_steps_per_s"] for r in sb3 if r["env_steps_per_s"]]

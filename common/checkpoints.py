@@ -4,10 +4,11 @@ A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``) holds one :class:`Tra
 stored as a plain dict of tensors, numbers and strings (loaded with ``torch.load(...,
 weights_only=True)`` so that a file from elsewhere cannot run code). Its layout::
 
-    {"format": 1, "algo": "apex" | "a3c",            # which schema reads the rest
+    {"format": 1, "algo": "apex" | "a3c" | "impala", # which schema reads the rest
      "arch": str, "version": int, "config": dict,    # every algorithm (TrainingState)
      "torch_rng": uint8 tensor, "saved_at": float,
-     ...the algorithm's own fields}                  # ApexTrainingState, A3CTrainingState
+     ...the algorithm's own fields}                  # ApexTrainingState, A3CTrainingState,
+                                                     # ImpalaTrainingState
 
 :class:`TrainingState` holds the fields every learner writes; each algorithm extends it with a
 subclass that names its own fields, its policy network class and where in the file the policy's
@@ -204,6 +205,21 @@ class R2D2TrainingState(TrainingState):
     @classmethod
     def run_policy_network(cls, spec: Mapping[str, ArraySpec], n_actions: int, cfg: RunConfig) -> torch.nn.Module:
         return cls.policy_network(spec, n_actions, cfg.network, cfg.r2d2.lstm_size)
+
+
+@dataclasses.dataclass(kw_only=True)
+class ImpalaTrainingState(TrainingState):
+    """IMPALA / APPO: the learner's actor-critic, its optimizer, the updates made and the env
+    steps (T * B per update) they trained on."""
+
+    algo: ClassVar[str] = "impala"
+    network: ClassVar[type[torch.nn.Module]] = ActorCritic
+    policy_path: ClassVar[tuple[str, ...]] = ("model",)
+
+    model: dict[str, torch.Tensor]
+    optimizer: dict[str, Any]
+    updates: int = 0  # type: ignore[assignment]  # a stored field where the base has a property
+    env_steps_trained: int = 0
 
 
 

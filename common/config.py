@@ -150,7 +150,7 @@ class EvalConfig(_Section):
     episodes: int = Field(10, ge=1, description="Greedy episodes per evaluation.")
     seed_offset: int = Field(1_000_000, ge=0, description="Evaluation seeds start at seed + seed_offset (separate from training seeds).")
     epsilon: float = Field(0.0, ge=0, le=1, description="Evaluation epsilon (0 = greedy).")
-    policy: Literal["greedy", "sample"] = Field("greedy", description="greedy: argmax actions; sample: draw from the policy's action distribution (a3c only), the policy A3C trains.")
+    policy: Literal["greedy", "sample"] = Field("greedy", description="greedy: argmax actions; sample: draw from the policy's action distribution (a3c and impala only), the policy they train.")
 
 
 class A3CConfig(_Section):
@@ -165,6 +165,35 @@ class A3CConfig(_Section):
     max_grad_norm: float = Field(1e6, gt=0, description="A worker's gradient whose norm (before clipping) exceeds this is rejected and counted, not clipped and applied: no honest worker sends one, and clipping would still apply a full-size step in its direction.")
     rmsprop_alpha: float = Field(0.99, gt=0, lt=1, description="RMSProp smoothing constant.")
     rmsprop_eps: float = Field(1e-5, gt=0, description="RMSProp epsilon.")
+
+
+class ImpalaConfig(_Section):
+    unroll_length: int = Field(32, ge=1, le=4096, description="T: steps per env in one unroll an actor publishes (the learner trains on B such unrolls per update).")
+    batch_unrolls: int = Field(16, ge=1, le=4096, description="B: unrolls per learner update (T * B env steps per update).")
+    lam: float = Field(1.0, ge=0, le=1, description="V-trace trace coefficient lambda (1: the paper's V-trace; < 1: lower-variance lambda-returns, as in rlax).")
+    rho_bar: float = Field(1.0, gt=0, description="V-trace clip of the importance ratio in the value targets and policy-gradient advantages (rho-bar).")
+    c_bar: float = Field(1.0, gt=0, description="V-trace clip of the importance ratio in the traces (c-bar), <= rho_bar in the paper.")
+    value_coef: float = Field(0.5, ge=0, description="Value loss coefficient.")
+    entropy_coef: float = Field(0.01, ge=0, description="Entropy bonus coefficient.")
+    clip_eps: Optional[float] = Field(None, gt=0, lt=1, description="null: IMPALA's V-trace policy gradient; a number: APPO, PPO's clipped surrogate with ratio pi/mu clipped to [1 - clip_eps, 1 + clip_eps] on V-trace advantages.")
+    normalize_advantages: bool = Field(False, description="APPO: normalize the advantages over each batch (mean 0, std 1).")
+    max_policy_lag: int = Field(16, ge=0, description="Drop (and count) unrolls acted with a policy more than this many weights versions behind the learner's.")
+    queue_max_unrolls: int = Field(256, ge=1, description="Unrolls the learner's queue holds at most (the oldest of the biggest source is evicted first).")
+    queue_max_bytes: int = Field(256 * 1024 * 1024, ge=1024, description="Decoded bytes the learner's queue holds at most.")
+    broadcast_every: int = Field(1, ge=1, description="Broadcast weights every K updates.")
+    max_grad_norm: float = Field(40.0, gt=0, description="Clip the gradient norm of each update to this (IMPALA used 40).")
+    max_abs_reward: float = Field(1e6, gt=0, description="An unroll with a reward whose magnitude exceeds this is rejected and counted.")
+    check_obs_bounds: bool = Field(True, description="Reject unrolls whose observations leave the env's finite Box bounds (turn off for an env whose observations leave its declared bounds).")
+    quarantine_rejections: int = Field(20, ge=0, description="An actor with this many rejected unrolls within quarantine_window_s has its unrolls dropped unread for quarantine_s; 0 turns quarantine off.")
+    quarantine_window_s: float = Field(10.0, gt=0, description="Window over which an actor's rejected unrolls are counted for quarantine.")
+    quarantine_s: float = Field(60.0, gt=0, description="How long a quarantined actor's unrolls are dropped unread.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImpalaConfig":
+        if self.batch_unrolls > self.queue_max_unrolls:
+            raise ValueError(f"impala.batch_unrolls {self.batch_unrolls} exceeds impala.queue_max_unrolls "
+                             f"{self.queue_max_unrolls}: a batch could never be taken")
+        return self
 
 
 class SelfPlayConfig(_Section):
@@ -199,7 +228,7 @@ class R2D2Config(_Section):
 
 
 class RunConfig(_Section):
-    algo: Literal["apex", "a3c", "r2d2"] = Field("apex", description="Algorithm family: apex (Ape-X DQN), a3c, or r2d2 (recurrent Ape-X).")
+    algo: Literal["apex", "a3c", "r2d2", "impala"] = Field("apex", description="Algorithm family: apex (Ape-X DQN), a3c, r2d2 (recurrent Ape-X), or impala (IMPALA / APPO with impala.clip_eps).")
     run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Run id (key prefix zenrl/<run_id>/ and runs/<run_id>/); default: generated.")
     runs_dir: str = Field("runs", description="Directory holding runs/<run_id>/.")
     seed: int = Field(0, ge=0, description="Base random seed.")
@@ -217,6 +246,7 @@ class RunConfig(_Section):
     learner: LearnerConfig = Field(default_factory=LearnerConfig)
     evaluator: EvalConfig = Field(default_factory=EvalConfig)
     a3c: A3CConfig = Field(default_factory=A3CConfig)
+    impala: ImpalaConfig = Field(default_factory=ImpalaConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
     r2d2: R2D2Config = Field(default_factory=R2D2Config)
 
@@ -228,8 +258,8 @@ class RunConfig(_Section):
 
     @model_validator(mode="after")
     def _check(self) -> "RunConfig":
-        if self.evaluator.policy == "sample" and self.algo != "a3c":
-            raise ValueError("evaluator.policy 'sample' needs algo a3c (a Q network has no action distribution)")
+        if self.evaluator.policy == "sample" and self.algo not in ("a3c", "impala"):
+            raise ValueError("evaluator.policy 'sample' needs algo a3c or impala (a Q network has no action distribution)")
         return self
 
 

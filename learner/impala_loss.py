@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch.nn import functional as F
@@ -104,9 +105,12 @@ def forward_unrolls(net: torch.nn.Module, batch: UnrollBatch) -> tuple[torch.Ten
 
 
 def learner_step(net: torch.nn.Module, optimizer: torch.optim.Optimizer, batch: UnrollBatch, p: LossParams,
-                 max_grad_norm: float | None = None) -> dict[str, float]:
+                 max_grad_norm: float | None = None,
+                 accept: Callable[[float, float], bool] | None = None) -> dict[str, float] | None:
     """Forward, loss, backward, gradient-norm clipping (``max_grad_norm``), one optimizer step.
-    Returns the loss statistics plus ``grad_norm`` (before clipping)."""
+    Returns the loss statistics plus ``grad_norm`` (before clipping). ``accept(loss,
+    grad_norm)`` (the learner's guard) is asked before the step: False skips it (the gradients
+    are cleared, the optimizer never sees them) and None is returned."""
     logits, values, boot, final_values = forward_unrolls(net, batch)
     loss, stats = impala_loss(logits, values, boot, final_values, batch.action, batch.behaviour_logp, batch.reward,
                               batch.terminated, batch.truncated, p)
@@ -114,6 +118,9 @@ def learner_step(net: torch.nn.Module, optimizer: torch.optim.Optimizer, batch: 
     loss.backward()
     params = [q for q in net.parameters() if q.grad is not None]
     norm = torch.nn.utils.clip_grad_norm_(params, max_grad_norm if max_grad_norm is not None else math.inf)
-    optimizer.step()
     stats["grad_norm"] = float(norm)
+    if accept is not None and not accept(stats["loss"], stats["grad_norm"]):
+        optimizer.zero_grad(set_to_none=True)
+        return None
+    optimizer.step()
     return stats

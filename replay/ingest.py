@@ -30,7 +30,8 @@ from typing import Any, Callable, Sequence
 from zenrl.common import protocol as P
 from zenrl.common.errors import ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
-from zenrl.replay.checks import Checker, Quarantine
+from zenrl.common.quarantine import Quarantine
+from zenrl.replay.checks import Checker
 from zenrl.replay.store import Chunk, Store, allocate, check_one
 
 log = logging.getLogger(__name__)

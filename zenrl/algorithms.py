@@ -21,13 +21,19 @@ from typing import Any, Protocol
 import torch
 
 from zenrl.actor.a3c import run_a3c_worker
+from zenrl.actor.impala import run_impala_actor
+from zenrl.actor.r2d2 import run_r2d2_actor
 from zenrl.actor.service import run_apex_actor
-from zenrl.common.checkpoints import A3CTrainingState, ApexTrainingState, TrainingState
+from zenrl.common.checkpoints import (A3CTrainingState, ApexTrainingState, ImpalaTrainingState, R2D2TrainingState,
+                                      TrainingState)
 from zenrl.common.config import RunConfig
 from zenrl.common.networks import ActorCritic, QNetwork
+from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.learner.a3c import A3CLearner
 from zenrl.learner.apex import ApexLearner
 from zenrl.learner.base import LearnerBase
+from zenrl.learner.impala import ImpalaLearner
+from zenrl.learner.r2d2 import R2D2Learner
 
 
 class ActorMain(Protocol):
@@ -51,7 +57,7 @@ class Algorithm:
     actor: ActorMain
     #: what its checkpoints hold
     checkpoint: type[TrainingState]
-    #: whether the run has a replay service (Ape-X), or workers push gradients (A3C)
+    #: whether the run has a replay service (Ape-X), or actors send to the learner (A3C, IMPALA)
     uses_replay: bool
     #: whether ``zenrl run`` may give the learner a CPU of its own (``cpu_placement: auto``)
     places_learner: bool
@@ -61,19 +67,13 @@ APEX = Algorithm("apex", network=QNetwork, learner=ApexLearner, actor=run_apex_a
                  uses_replay=True, places_learner=True)
 A3C = Algorithm("a3c", network=ActorCritic, learner=A3CLearner, actor=run_a3c_worker, checkpoint=A3CTrainingState,
                 uses_replay=False, places_learner=False)
-
-#: every algorithm, by ``RunConfig.algo``
-ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (APEX, A3C)}
-
-# R2D2: recurrent Ape-X (sequences in the replay)
-from zenrl.actor.r2d2 import run_r2d2_actor  # noqa: E402
-from zenrl.common.checkpoints import R2D2TrainingState  # noqa: E402
-from zenrl.common.recurrent import RecurrentQNetwork  # noqa: E402
-from zenrl.learner.r2d2 import R2D2Learner  # noqa: E402
-
+IMPALA = Algorithm("impala", network=ActorCritic, learner=ImpalaLearner, actor=run_impala_actor,
+                   checkpoint=ImpalaTrainingState, uses_replay=False, places_learner=True)
 R2D2 = Algorithm("r2d2", network=RecurrentQNetwork, learner=R2D2Learner, actor=run_r2d2_actor,
                  checkpoint=R2D2TrainingState, uses_replay=True, places_learner=True)
-ALGORITHMS[R2D2.name] = R2D2
+
+#: every algorithm, by ``RunConfig.algo``
+ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (APEX, A3C, IMPALA, R2D2)}
 
 
 def algorithm(name: str) -> Algorithm:

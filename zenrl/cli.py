@@ -43,21 +43,15 @@ def quiet_zenoh(level: str) -> None:
 #: The configuration each role process reads: whole sections, or single options as
 #: ``section.field`` (a role's ``--help`` lists these; ``zenrl run`` passes every option on).
 ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "replay": ("run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step"),
-    "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "network", "env", "transport",
-                "actor.num_actors"),
-    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "selfplay", "network", "env", "transport",
-              "learner.gamma"),
-    "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "network", "env", "transport"),
+    # the replay checks R2D2's sequences (of r2d2's length and state size) when algo says so
+    "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2"),
+    "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
+                "env", "transport", "actor.num_actors"),
+    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "network", "env",
+              "transport", "learner.gamma"),
+    "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
 }
-# R2D2's section: the replay checks sequences of its length and state size (and must know the
-# algo to check sequences at all), the learner and actors build the recurrent network and its
-# sequences, the evaluator its network
-for _role, _extra in {"replay": ("algo", "r2d2"), "learner": ("r2d2",), "actor": ("r2d2",),
-                      "evaluator": ("r2d2",)}.items():
-    ROLE_OPTIONS[_role] += _extra
-del _role, _extra
 
 
 def _options_epilog(role: str | None = None) -> str:

@@ -1,0 +1,80 @@
+"""IMPALA actor (``zenrl actor`` with ``algo: impala``): the actor worker (``actor/worker.py``)
+composed of
+
+* :class:`~zenrl.actor.policies.Sampling` with the behaviour log-probabilities as extras
+  (numpy forward for MLP networks): actions drawn from pi(.|s) with the newest weights;
+* :class:`~zenrl.actor.adders.UnrollsToLearner`: every ``impala.unroll_length`` batched steps,
+  one :class:`~zenrl.common.protocol.Unroll` per env on ``unrolls/<id>`` (BLOCK, lz4 with
+  ``actor.compress``), stamped with the policy version it was acted with;
+* the weights follower, polled every ``actor.weights_poll_steps`` batched steps (latest only,
+  never blocking), and a gate that waits for the learner's first weights (an unroll's version
+  must be one the learner published, or its lag could not be measured).
+
+The actor never waits for the learner after an unroll: V-trace corrects for the policy lag
+(``impala.max_policy_lag`` bounds it on the learner).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import numpy as np
+import torch
+
+from zenrl.actor.adders import UnrollsToLearner
+from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.policies import Sampling
+from zenrl.actor.weights import WeightsFollower
+from zenrl.actor.worker import ActorWorker, FirstWeights
+from zenrl.common import protocol as P
+from zenrl.common.config import RunConfig
+from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
+
+log = logging.getLogger(__name__)
+
+
+class ImpalaActor(ActorWorker):
+    """The IMPALA composition: E envs, unrolls out, newest weights in. ``node`` is a
+    :class:`~zenrl.common.transport.Node` (or a test fake with ``publisher``,
+    ``subscribe_latest``, ``query``, ``token``)."""
+
+    def __init__(self, cfg: RunConfig, node: Any, run_id: str, actor_id: str, slot: int) -> None:
+        self.cfg, self.node = cfg, node
+        keys = P.Keys(run_id)
+        set_compute_threads(cfg.actor.torch_threads)
+        envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        n_actions = num_actions(envs.single_action_space)
+        torch.manual_seed(cfg.seed)
+        self.net = ActorCritic(obs_spec(envs.single_observation_space), n_actions, cfg.network)
+        weights = WeightsFollower(node, keys, self.net, cfg.transport.max_message_bytes)
+        self.adder: UnrollsToLearner = UnrollsToLearner(
+            keys, actor_id, cfg.impala.unroll_length, lambda: weights.version, cfg.transport.max_message_bytes,
+            None if cfg.actor.compress == "none" else cfg.actor.compress)
+        policy = Sampling(self.net, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1)),
+                          use_numpy=True, with_logp=True)
+        super().__init__(keys, actor_id, slot, envs, policy, self.adder, weights,
+                         FirstWeights(min(2.0, cfg.transport.query_timeout_s)),
+                         poll_steps=cfg.actor.weights_poll_steps, report_s=cfg.actor.episode_report_s,
+                         query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0)
+        self.max_unrolls: int | None = None
+
+    def start(self, node: Any, sup: Any = None) -> None:
+        super().start(node, sup)
+        log.info("impala actor %s slot %d: %d envs, unrolls of %d steps", self.id, self.slot, self.envs.num_envs,
+                 self.cfg.impala.unroll_length)
+
+    def done(self) -> bool:
+        return self.max_unrolls is not None and self.adder.sent_unrolls >= self.max_unrolls
+
+    def run(self, stop: threading.Event, max_unrolls: int | None = None) -> None:
+        """Act and publish unrolls until ``stop`` (after ``max_unrolls`` unrolls, idle until then)."""
+        self.max_unrolls = max_unrolls
+        self.run_loop(self.node, stop)
+
+
+def run_impala_actor(cfg: RunConfig, node: Any, run_id: str, actor_id: str, slot: int, num_slots: int | None,
+                     stop: threading.Event) -> None:
+    """The IMPALA half of ``zenrl actor`` (:data:`zenrl.algorithms.IMPALA`)."""
+    ImpalaActor(cfg, node, run_id, actor_id, slot).run(stop)
