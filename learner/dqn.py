@@ -11,7 +11,7 @@ Batch layout (flat names, B rows)::
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -46,12 +46,15 @@ class DQNLearner:
     """Online and target networks plus optimizer; :meth:`update` is one training step."""
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig,
-                 cfg: LearnerConfig, device: torch.device) -> None:
+                 cfg: LearnerConfig, device: torch.device,
+                 network: Callable[[Mapping[str, ArraySpec], int, NetworkConfig], nn.Module] = QNetwork) -> None:
+        """``network(obs_spec, n_actions, net_cfg)`` builds the online and the target network
+        (R2D2 gives its recurrent one)."""
         self.cfg = cfg
         self.device = device
         self.obs_spec = {k: v for k, v in spec.items() if k == "obs" or k.startswith("obs/")}
-        self.online = QNetwork(self.obs_spec, n_actions, net_cfg).to(device)
-        self.target = QNetwork(self.obs_spec, n_actions, net_cfg).to(device)
+        self.online = network(self.obs_spec, n_actions, net_cfg).to(device)
+        self.target = network(self.obs_spec, n_actions, net_cfg).to(device)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
         self._fused = cfg.optimizer == "adam" and device.type in ("cpu", "cuda")

@@ -36,7 +36,6 @@ from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.apex import ApexLearner
 from zenrl.learner.dqn import DQNLearner
-from zenrl.learner.guard import UpdateGuard
 from zenrl.learner.r2d2_loss import r2d2_loss
 
 log = logging.getLogger(__name__)
@@ -53,22 +52,9 @@ class R2D2Core(DQNLearner):
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig, cfg: LearnerConfig,
                  rcfg: R2D2Config, device: torch.device) -> None:
-        # DQNLearner's attributes, with recurrent networks (its constructor builds feed-forward ones)
-        self.cfg, self.rcfg, self.device = cfg, rcfg, device
-        self.obs_spec = {k: v for k, v in spec.items() if k == "obs" or k.startswith("obs/")}
-        self.online = RecurrentQNetwork(self.obs_spec, n_actions, net_cfg, rcfg.lstm_size).to(device)
-        self.target = RecurrentQNetwork(self.obs_spec, n_actions, net_cfg, rcfg.lstm_size).to(device)
-        self.target.load_state_dict(self.online.state_dict())
-        self.target.requires_grad_(False)
-        self._fused = cfg.optimizer == "adam" and device.type in ("cpu", "cuda")
-        if cfg.optimizer == "adam":
-            self.opt: torch.optim.Optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps,
-                                                               fused=self._fused)
-        else:
-            self.opt = torch.optim.RMSprop(self.online.parameters(), lr=cfg.lr, alpha=0.95, eps=0.01, centered=True)
-        self.n_actions = int(n_actions)
-        self.updates = 0
-        self.guard = UpdateGuard(cfg.guard_max_bad_updates, cfg.guard_log_interval_s)
+        super().__init__(spec, n_actions, net_cfg, cfg, device,
+                         network=lambda obs, n, nc: RecurrentQNetwork(obs, n, nc, rcfg.lstm_size))
+        self.rcfg = rcfg
 
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
         """Tensors for :meth:`update`. Raises ValueError for an action index the network does not
