@@ -13,7 +13,7 @@ Decoding validates everything a peer could get wrong, and raises :class:`Protoco
 the field: the payload size cap, msgpack itself, the version, the message type, the exact set of
 field names, value types, array dtypes (a whitelist), shapes against the byte length, consistent
 batch sizes, finite floats where they matter (rewards, priorities, weights, gradients). Nothing is
-ever unpickled. The README's "Wire protocol" section documents the same thing for third parties.
+ever unpickled. docs/protocol.md documents the same thing for third parties.
 """
 
 from __future__ import annotations

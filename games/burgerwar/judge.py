@@ -1,7 +1,7 @@
 """The Burger War judge as pure logic (no simulation).
 
 Rules, as the contest's judge server (``judge/judgeServer.py`` of the contest kit) applies them;
-``shared/notes/burger-war.md`` ("Judge") summarises them:
+docs/burgerwar.md ("Judge and info") summarises them:
 
 * a field marker belongs to whoever read it last and can be retaken any number of times;
 * a robot marker (left/right 3 points, back 5 points) read by the enemy stays the enemy's; a
