@@ -5,9 +5,10 @@ it; pure (no zenoh), unit-tested with an injected clock."""
 from __future__ import annotations
 
 import collections
+import threading
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 
 @dataclass
@@ -80,3 +81,49 @@ class Quarantine:
         now = self.clock()
         return "; ".join(f"{s} ({e.reason}, {e.count} dropped, {max(0.0, e.until - now):.0f} s left)"
                          for s, e in sorted(self.active.items()) if now < e.until)
+
+
+class SourceLedger:
+    """Who sent what was rejected, for a service that takes messages from many senders (the
+    replay's chunks, the IMPALA learner's unrolls): rejections per source name (at most
+    ``max_sources`` names kept, the most rejected published; the totals by reason are the
+    caller's :class:`~zenrl.common.metrics.RejectCounter`), exceptions other than the protocol's
+    own by type (``rejected_internal/<Type>``), and the :class:`Quarantine` they feed. Thread-safe
+    (``lock`` guards all of it, the quarantine included)."""
+
+    def __init__(self, quarantine: Quarantine, max_sources: int = 10_000) -> None:
+        self.quarantine = quarantine
+        self.max_sources = max_sources
+        self.by_source: collections.Counter[str] = collections.Counter()
+        self.internal: collections.Counter[str] = collections.Counter()
+        self.lock = threading.Lock()
+
+    def rejected(self, source: str, reason: str) -> bool:
+        """Count one rejection of ``source``; True when it has just been quarantined. The
+        quarantine sees every rejection, also of sources past ``max_sources``."""
+        with self.lock:
+            if source in self.by_source or len(self.by_source) < self.max_sources:
+                self.by_source[source] += 1
+            return self.quarantine.record(source, reason)
+
+    def internal_error(self, e: BaseException) -> bool:
+        """Count an exception by type; True for the first of its type (worth a traceback)."""
+        t = type(e).__name__
+        with self.lock:
+            self.internal[t] += 1
+            return self.internal[t] == 1
+
+    def values(self, top: int, expire: bool = False) -> dict[str, Any]:
+        """``rejected_internal/<Type>``, the ``top`` most rejected ``rejected_from/<source>`` and
+        the quarantine (``quarantined``, ``quarantined_sources``, ``quarantines_total``);
+        ``expire``: forget the quarantines that are over first (a caller that acts on releases,
+        like the replay's tokens, calls ``quarantine.expire()`` itself under ``lock``)."""
+        with self.lock:
+            if expire:
+                self.quarantine.expire()
+            v: dict[str, Any] = {f"rejected_internal/{t}": n for t, n in self.internal.items()}
+            v.update({f"rejected_from/{s}": n for s, n in self.by_source.most_common(top)})
+            v["quarantined"] = len(self.quarantine.active)
+            v["quarantined_sources"] = self.quarantine.describe()
+            v["quarantines_total"] = self.quarantine.total
+        return v

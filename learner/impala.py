@@ -30,9 +30,7 @@ hold where the training happens.
 
 from __future__ import annotations
 
-import collections
 import logging
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +43,7 @@ from zenrl.common.env_factory import make_env
 from zenrl.common.errors import CheckpointError, ProtocolError
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_arrays
-from zenrl.common.quarantine import Quarantine
+from zenrl.common.quarantine import Quarantine, SourceLedger
 from zenrl.common.roles import Supervisor
 from zenrl.common.unroll_checks import UnrollChecker
 from zenrl.learner.a3c import make_optimizer
@@ -97,10 +95,8 @@ class ImpalaLearner(LearnerBase):
             env.close()
         self.quarantine = Quarantine(icfg.quarantine_rejections, icfg.quarantine_window_s, icfg.quarantine_s)
         self.rejects = RejectCounter(log, "unroll")
-        self.rejected_by_source: collections.Counter[str] = collections.Counter()
-        self.internal_errors: collections.Counter[str] = collections.Counter()
-        #: guards the per-source counts and the quarantine (the callback vs the role loop)
-        self._sources_lock = threading.Lock()
+        #: rejections by source, internal errors by type, the quarantine they feed (its lock)
+        self.ledger = SourceLedger(self.quarantine, MAX_SOURCES)
         self.dropped_quarantined = 0
         self.updates = 0
         self.version = 0
@@ -203,10 +199,7 @@ class ImpalaLearner(LearnerBase):
             self.reject(e.reason, str(e), src)
         except Exception as e:  # noqa: BLE001 - one message's failure costs that message only
             t = type(e).__name__
-            with self._sources_lock:
-                self.internal_errors[t] += 1
-                first = self.internal_errors[t] == 1
-            if first:
+            if self.ledger.internal_error(e):
                 log.error("an unroll from %s raised %s; counted as rejected_internal, going on", src, t, exc_info=e)
             self.reject("internal", f"{t}: {e}", src)
         return "rejected"
@@ -215,12 +208,7 @@ class ImpalaLearner(LearnerBase):
         """Count a rejected unroll by reason and by source; a source that keeps sending bad
         unrolls is quarantined and its queued unrolls forgotten."""
         self.rejects.reject(reason, detail, source)
-        with self._sources_lock:
-            if source not in self.rejected_by_source and len(self.rejected_by_source) >= MAX_SOURCES:
-                return  # bounded memory however many ids a sender invents (the totals still count)
-            self.rejected_by_source[source] += 1
-            quarantined = self.quarantine.record(source, reason)
-        if quarantined:
+        if self.ledger.rejected(source, reason):
             dropped = self.queue.drop_source(source)
             log.warning("actor %s quarantined for %.0f s: %d rejected unrolls within %.0f s (last: %s); %d queued "
                         "unrolls of it dropped", source, self.quarantine.duration_s, self.quarantine.rejections,
@@ -298,14 +286,7 @@ class ImpalaLearner(LearnerBase):
             "send_dropped": self._sender.dropped if self._sender is not None else 0, **self.guard.values()})
         vals.update({f"queue_{k}": q[k] for k in QUEUE_COUNTERS})
         vals.update(self.rejects.as_values())
-        with self._sources_lock:
-            vals.update({f"rejected_internal/{t}": c for t, c in self.internal_errors.items()})
-            for src, c in self.rejected_by_source.most_common(TOP_SOURCES):
-                vals[f"rejected_from/{src}"] = c
-            self.quarantine.expire()
-            vals["quarantined"] = len(self.quarantine.active)
-            vals["quarantined_sources"] = self.quarantine.describe()
-            vals["quarantines_total"] = self.quarantine.total
+        vals.update(self.ledger.values(TOP_SOURCES, expire=True))
         line = None
         if self._n_acc:
             line = (f"updates {self.updates} v{self.version} {vals['updates_per_s']:.1f} upd/s "

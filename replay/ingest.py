@@ -20,7 +20,6 @@ next chunk is handled: no message can end the ingest thread.
 
 from __future__ import annotations
 
-import collections
 import logging
 import queue
 import threading
@@ -30,7 +29,7 @@ from typing import Any, Callable, Sequence
 from zenrl.common import protocol as P
 from zenrl.common.errors import ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
-from zenrl.common.quarantine import Quarantine
+from zenrl.common.quarantine import Quarantine, SourceLedger
 from zenrl.replay.checks import Checker
 from zenrl.replay.store import Chunk, Store, allocate, check_one
 
@@ -63,12 +62,11 @@ class Ingest:
         #: is about to stop being drained)
         self.closing = threading.Event()
         self.rejects = RejectCounter(log, "message")
-        self.internal_errors: collections.Counter[str] = collections.Counter()
-        self.rejected_by_source: collections.Counter[str] = collections.Counter()
         self.quarantine = Quarantine(rcfg.quarantine_rejections, rcfg.quarantine_window_s, rcfg.quarantine_s)
-        #: guards the per-source counts and the quarantine (rejections come from the ingest thread,
-        #: stats and quarantine expiry from the role loop); never held while taking ``lock``
-        self.sources_lock = threading.Lock()
+        #: rejections by source, internal errors by type, the quarantine they feed; its lock guards
+        #: them (rejections come from the ingest thread, stats and expiry from the role loop) and
+        #: is never held while taking ``lock``
+        self.ledger = SourceLedger(self.quarantine, MAX_SOURCES)
         self.inserted = RateMeter()
         self.dropped_queue_full = 0
         self.dropped_stopping = 0
@@ -258,9 +256,7 @@ class Ingest:
 
     def _internal(self, e: BaseException, source: str) -> None:
         t = type(e).__name__
-        with self.sources_lock:
-            self.internal_errors[t] += 1
-            first = self.internal_errors[t] == 1
+        first = self.ledger.internal_error(e)
         self.reject("internal", f"{t}: {e}", source)
         if first:  # the first of each type with its traceback, the rest counted
             log.error("ingest of a chunk from %s raised %s; counted as rejected_internal, going on", source, t, exc_info=e)
@@ -270,12 +266,7 @@ class Ingest:
         that keeps sending bad chunks is quarantined. Callers may hold the lock or not."""
         self.rejects.reject(reason, detail, source)
         src = source_of(source)
-        with self.sources_lock:
-            if src not in self.rejected_by_source and len(self.rejected_by_source) >= MAX_SOURCES:
-                return  # bounded memory however many ids a sender invents (the totals still count)
-            self.rejected_by_source[src] += 1
-            quarantined = self.quarantine.record(src, reason)
-        if quarantined:
+        if self.ledger.rejected(src, reason):
             log.warning("source %s quarantined for %.0f s: %d rejected chunks within %.0f s (last: %s)", src,
                         self.rcfg.quarantine_s, self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, reason)
 
@@ -289,12 +280,6 @@ class Ingest:
             "ingest_queue": self.queue.qsize(),
         }
         v.update(self.rejects.as_values())
-        with self.sources_lock:
-            v.update({f"rejected_internal/{t}": n for t, n in self.internal_errors.items()})
-            for src, n in self.rejected_by_source.most_common(TOP_SOURCES):
-                v[f"rejected_from/{src}"] = n
-            v["quarantined"] = len(self.quarantine.active)
-            v["quarantined_sources"] = self.quarantine.describe()
-            v["quarantines_total"] = self.quarantine.total
+        v.update(self.ledger.values(TOP_SOURCES))
         v["dropped_quarantined"] = self.dropped_quarantined
         return v

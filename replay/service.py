@@ -96,7 +96,7 @@ class ReplayService:
 
     @property
     def rejected_by_source(self) -> Any:
-        return self.ingestor.rejected_by_source
+        return self.ingestor.ledger.by_source
 
     @property
     def inserted(self) -> Any:
@@ -198,7 +198,7 @@ class ReplayService:
         """Hold a liveliness token ``quarantine/<source>`` while a source is quarantined, so
         that slot claims (see zenrl.actor.slots) treat its exploration slot as free."""
         ing = self.ingestor
-        with ing.sources_lock:
+        with ing.ledger.lock:
             released = ing.quarantine.expire()
             active = list(ing.quarantine.active)
         for src in released:

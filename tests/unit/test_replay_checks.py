@@ -186,3 +186,23 @@ def test_new_options_are_validated_with_the_bad_value_named(option, value):
     with pytest.raises(ConfigError, match=option.split(".")[1]) as e:
         load_config(None, [f"{option}={value}"])
     assert value in str(e.value)
+
+
+def test_source_ledger_caps_names_but_never_stops_quarantining():
+    """Past max_sources no new name is counted (bounded memory), yet every source that keeps
+    failing is still quarantined; internal errors are counted by type, the first one flagged."""
+    from zenrl.common.quarantine import SourceLedger
+
+    t = [0.0]
+    led = SourceLedger(Quarantine(2, 10.0, 60.0, clock=lambda: t[0]), max_sources=3)
+    for s in ("a", "b", "c"):
+        assert led.rejected(s, "action_range") is False
+    assert led.rejected("d", "action_range") is False and "d" not in led.by_source
+    assert led.rejected("d", "action_range") is True, "a source past the name cap is still quarantined"
+    assert led.quarantine.is_quarantined("d")
+    assert led.internal_error(ValueError("x")) is True and led.internal_error(ValueError("y")) is False
+    v = led.values(top=2)
+    assert v["rejected_internal/ValueError"] == 2 and v["quarantined"] == 1 and v["quarantines_total"] == 1
+    assert len([k for k in v if k.startswith("rejected_from/")]) == 2
+    t[0] = 100.0
+    assert led.values(top=2, expire=True)["quarantined"] == 0
