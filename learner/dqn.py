@@ -72,13 +72,16 @@ class DQNLearner:
         frac = min(1.0, self.updates / self.cfg.beta_anneal_updates)
         return self.cfg.beta0 + frac * (1.0 - self.cfg.beta0)
 
-    def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
-        """Tensors for :meth:`update`. Raises ValueError for an action index the network does not
-        have (``gather`` would crash the step, or assert on CUDA and poison the context)."""
-        a = data["action"]
+    def check_actions(self, a: np.ndarray) -> None:
+        """ValueError for an action index the network does not have (``gather`` would crash the
+        step, or assert on CUDA and poison the context)."""
         if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
             raise ValueError(f"batch has action {int(a.max()) if int(a.max()) >= self.n_actions else int(a.min())} "
                              f"outside 0..{self.n_actions - 1}")
+
+    def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
+        """Tensors for :meth:`update` (:meth:`check_actions` first)."""
+        self.check_actions(data["action"])
         t = to_tensors({k: v for k, v in data.items() if k in ("action", "reward", "n", "terminated")}, self.device)
         t["obs"] = to_tensors({k: data[k] for k in self.obs_spec}, self.device)
         t["next_obs"] = to_tensors(rename_prefix(data, "next_obs", "obs"), self.device)

@@ -57,12 +57,8 @@ class R2D2Core(DQNLearner):
         self.rcfg = rcfg
 
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
-        """Tensors for :meth:`update`. Raises ValueError for an action index the network does not
-        have (``gather`` would crash the step, or assert on CUDA and poison the context)."""
-        a = data["action"]
-        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
-            raise ValueError(f"batch has action {int(a.max()) if int(a.max()) >= self.n_actions else int(a.min())} "
-                             f"outside 0..{self.n_actions - 1}")
+        """Tensors for :meth:`update` (:meth:`check_actions` first)."""
+        self.check_actions(data["action"])
         t = to_tensors({k: data[k] for k in (*self.obs_spec, *BATCH_FIELDS)}, self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
         return t
