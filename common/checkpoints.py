@@ -1,8 +1,8 @@
 """The learner's checkpoint files: their one schema, and reading them.
 
 A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``) holds one :class:`TrainingState`,
-stored as a plain dict of tensors, numbers and strings (loaded with ``torch.load(...,
-weights_only=True)`` so that a file from elsewhere cannot run code). Its layout::
+stored as a plain dict of tensors, numbers and strings (read with torch's ``weights_only=True``
+loader, so that a file from elsewhere cannot run code). Its layout::
 
     {"format": 1, "algo": "apex" | "a3c" | "impala", # which schema reads the rest
      "arch": str, "version": int, "config": dict,    # every algorithm (TrainingState)

@@ -98,6 +98,17 @@ class DQNLearner:
             y = double_dqn_target(q_next_online, q_next_target, b["reward"].float(), b["n"], b["terminated"], self.cfg.gamma)
         q = self.online(b["obs"])
         loss, td_abs, q_sa = dqn_loss(q, b["action"], y, b["weights"], self.cfg.huber_delta)
+        stepped = self.optimize(loss)
+        if stepped is None:
+            return {}, None
+        loss_v, norm_v = stepped
+        metrics = {"loss": loss_v, "q_mean": float(q_sa.mean().item()), "grad_norm": norm_v}
+        return metrics, td_abs.cpu().numpy().astype(np.float32)
+
+    def optimize(self, loss: torch.Tensor) -> tuple[float, float] | None:
+        """One optimizer step on ``loss`` behind the guard (gradients clipped to
+        ``grad_clip``), the target copied every ``target_update_period`` updates. Returns
+        (loss, gradient norm), or None when the guard skipped the step."""
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
@@ -105,13 +116,12 @@ class DQNLearner:
         loss_v, norm_v = float(loss.item()), float(grad_norm.item())
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
-            return {}, None
+            return None
         self.opt.step()
         self.updates += 1
         if self.updates % self.cfg.target_update_period == 0:
             self.target.load_state_dict(self.online.state_dict())
-        metrics = {"loss": loss_v, "q_mean": float(q_sa.mean().item()), "grad_norm": norm_v}
-        return metrics, td_abs.cpu().numpy().astype(np.float32)
+        return loss_v, norm_v
 
     def params_finite(self) -> bool:
         """Whether the online and target networks are finite (checked before publish or save)."""

@@ -27,7 +27,6 @@ from typing import Any, Mapping
 
 import numpy as np
 import torch
-from torch import nn
 
 from zenrl.common.checkpoints import R2D2TrainingState
 from zenrl.common.config import LearnerConfig, NetworkConfig, R2D2Config, RunConfig
@@ -70,17 +69,10 @@ class R2D2Core(DQNLearner):
         r = self.rcfg
         res = r2d2_loss(self.online, self.target, b, burn_in=r.burn_in, n_step=r.n_step, gamma=self.cfg.gamma,
                         eps=r.value_rescale_eps, eta=r.eta, train_episode_starts=r.train_episode_starts)
-        self.opt.zero_grad(set_to_none=True)
-        res.loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        loss_v, norm_v = float(res.loss.item()), float(grad_norm.item())
-        if not self.guard.accept(loss_v, norm_v):
-            self.opt.zero_grad(set_to_none=True)
+        stepped = self.optimize(res.loss)
+        if stepped is None:
             return {}, None
-        self.opt.step()
-        self.updates += 1
-        if self.updates % self.cfg.target_update_period == 0:
-            self.target.load_state_dict(self.online.state_dict())
+        loss_v, norm_v = stepped
         metrics = {"loss": loss_v, "q_mean": res.q_mean, "grad_norm": norm_v,
                    "trained_steps": float(res.trained.sum().item())}
         return metrics, res.priorities.detach().cpu().numpy().astype(np.float32)

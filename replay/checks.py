@@ -74,6 +74,20 @@ def _bounds_rejection(k: str, a: np.ndarray, rows: int, low: np.ndarray, high: n
     return None
 
 
+def _required_fields(required: Mapping[str, tuple[np.dtype, tuple[int, ...]]], obs_rules: Mapping[str, Any],
+                     data: Mapping[str, np.ndarray]) -> Rejection | None:
+    """The first field of ``required`` ({name: (dtype, shape of one item)}) that ``data`` lacks
+    or carries with another dtype or shape (``obs_dtype`` for an observation field)."""
+    for k, (dt, shape) in required.items():
+        a = data.get(k)
+        if a is None:
+            return Rejection("spec", f"field {k} is missing")
+        if a.dtype != dt or a.shape[1:] != shape:
+            return Rejection("obs_dtype" if k in obs_rules else "spec",
+                             f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the run's spec says {dt.name}{list(shape)}")
+    return None
+
+
 class ChunkChecker:
     """Checks one chunk's ``data`` (flat ``{name: array[B, ...]}``) and ``priorities``
     (float32[B] or None) against the run's env spec and bounds.
@@ -182,13 +196,9 @@ class ChunkChecker:
 
     def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         """Field names, dtypes and per-item shapes against the env's spec."""
-        for k, (dt, shape) in self.required.items():
-            a = data.get(k)
-            if a is None:
-                return Rejection("spec", f"field {k} is missing")
-            if a.dtype != dt or a.shape[1:] != shape:
-                return Rejection("obs_dtype" if k in self.rules else "spec",
-                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says {dt.name}{list(shape)}")
+        bad = _required_fields(self.required, self.rules, data)
+        if bad is not None:
+            return bad
         if len(data) != len(self.required):
             for k, a in data.items():
                 if k in self.required:
@@ -264,13 +274,9 @@ class SequenceChecker:
 
     def check_fields(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         """Field names, dtypes and per-item shapes against the env's spec, m and H."""
-        for k, (dt, shape) in self.required.items():
-            a = data.get(k)
-            if a is None:
-                return Rejection("spec", f"field {k} is missing")
-            if a.dtype != dt or a.shape[1:] != shape:
-                return Rejection("obs_dtype" if k in self.rules else "spec",
-                                 f"field {k}: {a.dtype.name}{list(a.shape[1:])}, a sequence's is {dt.name}{list(shape)}")
+        bad = _required_fields(self.required, self.rules, data)
+        if bad is not None:
+            return bad
         for k in data:
             if k not in self.required:
                 return Rejection("spec", f"field {k} is not part of an R2D2 sequence")
