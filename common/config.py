@@ -77,6 +77,8 @@ class ReplayConfig(_Section):
     flush_interval_s: float = Field(1.0, gt=0, description="fsync the durable log at most this often (the loss window after a crash).")
     snapshot_interval_s: float = Field(10.0, gt=0, description="Write a priority snapshot this often.")
     segment_items: Optional[int] = Field(None, ge=1, description="Items per log segment (default capacity / 8); whole segments are deleted once overwritten.")
+    durable_retry_s: float = Field(5.0, gt=0, description="While the durable log cannot be written (disk full, EIO), retry it this often; the replay keeps ingesting into memory meanwhile.")
+    durable_backlog_bytes: int = Field(256 * 1024 * 1024, ge=0, description="Chunks (wire bytes) kept in memory while the durable log cannot be written, to log them when it can again; past this the oldest are dropped from the backlog (a restart then restores from the oldest kept).")
     drop_after_s: float = Field(2.0, gt=0, lt=5, description="A chunk waiting this long for a full ingest queue is dropped and counted (stays below Zenoh's 5 s BLOCK fuse).")
     check_semantics: bool = Field(True, description="Check each chunk's meaning against the run's env spec (actions in range, n in 1..actor.n_step, observation dtypes and finite Box bounds, reward and priority bounds); a chunk that fails is rejected and counted by reason and source.")
     check_obs_bounds: bool = Field(True, description="With check_semantics: also check observations against the env's finite Box bounds (turn off for an env whose observations leave its declared bounds).")

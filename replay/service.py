@@ -61,7 +61,7 @@ class ReplayService:
         if rcfg.durable:
             log_dir = rcfg.log_dir or str(Path(cfg.runs_dir) / run_id / "replay")
             self.journal = Journal(log_dir, rcfg.segment_items or max(1, rcfg.capacity // 8), rcfg.flush_interval_s,
-                                   rcfg.snapshot_interval_s)
+                                   rcfg.snapshot_interval_s, rcfg.durable_retry_s, rcfg.durable_backlog_bytes)
         checker = make_checker(cfg) if rcfg.check_semantics else None
         self.ingestor = Ingest(rcfg, cfg.seed, self.max_bytes, checker, self._lock, self.journal)
         self.sampler = Sampler(rcfg, cfg.seed, self.max_bytes, self._lock, lambda: self.buffer, self.ingestor.rejects,
@@ -130,10 +130,11 @@ class ReplayService:
 
     def step(self, timeout_s: float) -> bool:
         """The periodic duties (the ingest thread does the work): fsync the log when due while no
-        chunk comes to do it, hold the quarantine tokens; then wait ``timeout_s``."""
+        chunk comes to do it (or retry a log the disk failed), hold the quarantine tokens; then
+        wait ``timeout_s``."""
         if self.journal is not None:
             with self._lock:
-                self.journal.maybe_flush()
+                self.journal.tick(self.buffer)
         self.update_quarantine()
         self._role_stop.wait(timeout_s)
         return False
