@@ -133,6 +133,14 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "log_disk_bytes": ("log_disk_bytes", GAUGE, "Bytes the replay log takes on disk."),
         "log_torn_records": ("log_torn_records", COUNTER, "Torn records found in the replay log."),
         "durable_through": ("durable_through", GAUGE, "Sequence number the replay log is durable through."),
+        "durable_degraded": ("durable_degraded", GAUGE, "1 while the replay log cannot be written (disk full, EIO): ingest goes on in memory."),
+        "durable_disk_errors": ("durable_disk_errors", COUNTER, "Failed writes, fsyncs or renames of the replay log."),
+        "durable_backlog_items": ("durable_backlog_items", GAUGE, "Transitions inserted but not yet logged while the log is degraded."),
+        "durable_lost_items": ("durable_lost_items", COUNTER, "Transitions dropped from the degraded log's backlog (over replay.durable_backlog_bytes)."),
+        "durable_resumes": ("durable_resumes", COUNTER, "Times the replay log resumed after a disk error."),
+        "log_corrupt_records": ("log_corrupt_records", COUNTER, "Bad records skipped inside the replay log at start."),
+        "log_skipped_items": ("log_skipped_items", GAUGE, "Logged transitions not restored at start (before a gap in the log's keys)."),
+        "log_snapshot_unreadable": ("log_snapshot_unreadable", COUNTER, "Priority snapshots found unreadable at start."),
     },
 }
 

@@ -119,7 +119,11 @@ def _fmt_rate(r: dict[str, Any]) -> str:
 def _detail(r: dict[str, Any], learner_version: int | None) -> str:
     role = r["role"]
     if role == "replay" and "size" in r:
-        return f"size {r['size']:,} / {r.get('capacity', 0):,}"
+        size = f"size {r['size']:,} / {r.get('capacity', 0):,}"
+        if r.get("durable_degraded"):  # ingest goes on in memory; a restart would not restore it all
+            size += (f", DURABLE LOG DEGRADED ({r.get('durable_error') or 'disk error'}; "
+                     f"{r.get('durable_backlog_items', 0):,} items in memory only)")
+        return size
     if role == "actor" and learner_version is not None and r.get("policy_version") is not None:
         return f"lag {learner_version - int(r['policy_version'])} versions"
     if role == "learner" and r.get("policy_lag") is not None:
