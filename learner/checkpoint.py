@@ -7,7 +7,9 @@ temp files a killed write left behind are removed when a learner starts
 
 from __future__ import annotations
 
+import logging
 import os
+import time
 from pathlib import Path
 
 import torch
@@ -16,6 +18,8 @@ from zenrl.common.checkpoints import TrainingState, checkpoint_name, list_checkp
 
 __all__ = ["TrainingState", "checkpoint_dir", "list_checkpoints", "load_latest", "read_checkpoint", "save_checkpoint",
            "VersionReservation", "read_version_mark", "remove_stale_temp_files", "write_version_mark"]
+
+log = logging.getLogger(__name__)
 
 
 def checkpoint_dir(runs_dir: str | os.PathLike[str], run_id: str) -> Path:
@@ -72,6 +76,8 @@ def save_checkpoint(directory: str | os.PathLike[str], state: TrainingState, kee
 
 
 VERSION_MARK = "weights_version"
+#: seconds between tries to write a version mark that failed (a full disk)
+MARK_RETRY_S = 5.0
 
 
 def write_version_mark(run_dir: str | os.PathLike[str], version: int) -> None:
@@ -102,14 +108,27 @@ class VersionReservation:
         self.run_dir = Path(run_dir)
         self.block = block
         self.reserved = read_version_mark(self.run_dir)
+        self.mark_errors = 0
+        self._retry_at = 0.0
 
     def resume_version(self, checkpoint_version: int) -> int:
         """The version to continue from after restoring a checkpoint saved at ``checkpoint_version``."""
         return max(int(checkpoint_version), self.reserved)
 
     def claim(self, version: int) -> int:
-        """Call before publishing ``version``; returns it."""
-        if version > self.reserved:
-            self.reserved = int(version) + self.block
-            write_version_mark(self.run_dir, self.reserved)
+        """Call before publishing ``version``; returns it. A mark that cannot be written (a full
+        disk) does not stop publishing: the error is logged and counted (``mark_errors``) and the
+        write retried at the next claim at most every :data:`MARK_RETRY_S`; until it succeeds a
+        learner resumed from an older checkpoint may start below versions already published."""
+        if version > self.reserved and time.monotonic() >= self._retry_at:
+            want = int(version) + self.block
+            try:
+                write_version_mark(self.run_dir, want)
+            except OSError as e:
+                self.mark_errors += 1
+                self._retry_at = time.monotonic() + MARK_RETRY_S
+                log.error("cannot record weights version %d in %s (%s); publishing anyway, retrying in %g s",
+                          want, self.run_dir / VERSION_MARK, e, MARK_RETRY_S)
+                return version
+            self.reserved = want
         return version

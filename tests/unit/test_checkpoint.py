@@ -295,3 +295,28 @@ def test_temp_files_of_killed_writes_are_removed_when_a_learner_starts(tmp_path)
     LearnerBase(cfg, None, "r1", "learner")
     assert not any(p.exists() for p in killed) and keep.exists()
     assert remove_stale_temp_files(tmp_path / "nowhere") == []
+
+
+def test_a_version_mark_the_disk_refuses_does_not_stop_publishing(tmp_path, monkeypatch):
+    """A full disk when the mark must move: the version is still handed out, the failure is
+    counted, the mark is not advanced in memory (so it is retried), and written once the disk
+    takes it again."""
+    from zenrl.learner.checkpoint import VersionReservation
+
+    r = VersionReservation(tmp_path, block=10)
+    assert r.claim(1) == 1 and read_version_mark(tmp_path) == 11
+    real = ckmod.write_version_mark
+    full = [True]
+
+    def write(d, v):
+        if full[0]:
+            raise OSError(28, "No space left on device")
+        real(d, v)
+    monkeypatch.setattr(ckmod, "write_version_mark", write)
+    for v in range(2, 16):
+        assert r.claim(v) == v
+    assert r.mark_errors == 1 and r.reserved == 11 and read_version_mark(tmp_path) == 11  # retried only later
+    full[0] = False
+    monkeypatch.setattr(ckmod, "MARK_RETRY_S", 0.0)
+    r._retry_at = 0.0
+    assert r.claim(16) == 16 and r.reserved == 26 and read_version_mark(tmp_path) == 26
