@@ -164,6 +164,7 @@ class A3CConfig(_Section):
     lr_final_fraction: float = Field(0.1, ge=0, le=1, description="Final lr as a fraction of learner.lr when lr_anneal_updates is set.")
     max_staleness: int = Field(8, ge=0, description="Drop gradients computed from parameters more than this many versions old.")
     broadcast_every: int = Field(1, ge=1, description="Broadcast parameters every K applied gradients.")
+    max_gradient_steps: Optional[int] = Field(None, ge=1, description="Most env steps one worker's gradient message may claim (added to the learner's env_steps_trained); more is rejected and counted (rejected_steps). Default: a3c.t_max * actor.envs_per_actor, what one rollout of a worker of this config holds; raise it for workers run with more envs.")
     max_grad_norm: float = Field(1e6, gt=0, description="A worker's gradient whose norm (before clipping) exceeds this is rejected and counted, not clipped and applied: no honest worker sends one, and clipping would still apply a full-size step in its direction.")
     rmsprop_alpha: float = Field(0.99, gt=0, lt=1, description="RMSProp smoothing constant.")
     rmsprop_eps: float = Field(1e-5, gt=0, description="RMSProp epsilon.")

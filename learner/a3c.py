@@ -2,8 +2,11 @@
 advantage actor-critic.
 
 Workers (:mod:`zenrl.actor.a3c`) publish :class:`~zenrl.common.protocol.Gradients` on
-``gradients/<worker>``. The Zenoh callback only enqueues the payload in a bounded queue (a full
-queue drops and counts, so the sender is never stalled); the main loop decodes, validates and
+``gradients/<worker>``. The Zenoh callback only enqueues the payload in a bounded queue that is
+fair per source (:class:`~zenrl.learner.fair_queue.FairQueue`: one FIFO per worker key, served
+round-robin; a full queue evicts the oldest message of the worker holding the most and counts it
+in ``queue_dropped`` and ``queue_dropped_from/<worker>``, so the sender is never stalled and a
+worker that floods pushes out only its own gradients); the main loop decodes, validates and
 applies each gradient as it arrives with one shared optimizer (RMSProp by default for A3C, as in
 the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the parameters every
 ``a3c.broadcast_every`` applications with a strictly increasing ``version`` (low priority, on the
@@ -12,6 +15,10 @@ the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the
 Which gradients are applied (:class:`GradientApplier`, pure, unit-tested):
 
 * names and shapes must match the model's parameters (else rejected, counted by reason);
+* ``worker_id`` must be the worker named in the key (``source``), and ``steps`` (added to
+  ``env_steps_trained``) at most what one rollout can hold, ``a3c.max_gradient_steps`` (default
+  ``a3c.t_max * actor.envs_per_actor``) (``steps``): no message can inflate the learner's
+  counters;
 * NaN/Inf never get this far (rejected when decoded); a gradient whose norm overflows, or
   exceeds ``a3c.max_grad_norm`` (absurd for any honest worker), is rejected; if the parameters ever became non-finite after a step they are restored from the
   last broadcast and the optimizer state is reset;
@@ -29,7 +36,6 @@ gradient further back would be stale by the time it is applied anyway.
 from __future__ import annotations
 
 import logging
-import queue
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -45,6 +51,7 @@ from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_array
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.base import LearnerBase
+from zenrl.learner.fair_queue import FairQueue
 from zenrl.learner.sender import BackgroundSender
 
 log = logging.getLogger(__name__)
@@ -182,8 +189,9 @@ class A3CLearner(LearnerBase):
         self.applier = GradientApplier(self.net, cfg.learner, cfg.a3c)
         self.env_steps_trained = 0
         a = cfg.a3c
-        self._q: queue.Queue[tuple[str, bytes]] = queue.Queue(
-            maxsize=(a.max_staleness + 1) * a.broadcast_every + cfg.actor.num_actors)
+        self._q: FairQueue[bytes] = FairQueue((a.max_staleness + 1) * a.broadcast_every + cfg.actor.num_actors)
+        #: most env steps one gradient message may claim
+        self.max_steps = a.max_gradient_steps or a.t_max * cfg.actor.envs_per_actor
         self.queue_dropped = 0
         self.stale_dropped = 0
         self.unknown_version_dropped = 0
@@ -216,10 +224,8 @@ class A3CLearner(LearnerBase):
 
     # -- network -----------------------------------------------------------------------------
     def _on_gradients(self, key: str, payload: bytes) -> None:
-        """Zenoh callback: enqueue only; never blocks the sender."""
-        try:
-            self._q.put_nowait((key, payload))
-        except queue.Full:
+        """Zenoh callback: enqueue only (in the worker's FIFO); never blocks the sender."""
+        if self._q.put(key.rsplit("/", 1)[-1], payload):
             self.queue_dropped += 1
 
     def _encode_weights(self) -> bytes:
@@ -231,12 +237,15 @@ class A3CLearner(LearnerBase):
 
     # -- gradients ---------------------------------------------------------------------------
     def handle(self, key: str, payload: bytes) -> str | None:
-        """Decode and apply one gradient message; returns the outcome (None if rejected)."""
+        """Decode and apply one gradient message from ``key`` (``gradients/<worker>``, or the
+        worker's name alone); returns the outcome (None if rejected)."""
+        source = key.rsplit("/", 1)[-1]
         try:
             msg = P.Gradients.decode(payload, self.cfg.transport.max_message_bytes)
+            self.check_claims(msg, source)
             outcome, norm = self.applier.apply(msg)
         except ProtocolError as e:
-            self.rejects.reject(e.reason, str(e), key.rsplit("/", 1)[-1])
+            self.rejects.reject(e.reason, str(e), source)
             return None
         if outcome == STALE:
             self.stale_dropped += 1
@@ -252,6 +261,15 @@ class A3CLearner(LearnerBase):
             self._lag_sum += self.applier.version - msg.version
             self._n_applied += 1
         return outcome
+
+    def check_claims(self, msg: P.Gradients, source: str) -> None:
+        """Raise :class:`ProtocolError` if ``msg`` claims another sender than its key's
+        (``source``) or more env steps than one rollout holds (``self.max_steps``)."""
+        if msg.worker_id != source:
+            raise ProtocolError("worker_id", f"{msg.worker_id!r} sent on the key of {source!r}", "source")
+        if msg.steps > self.max_steps:
+            raise ProtocolError("steps", f"{msg.steps} env steps in one gradient, more than a3c.max_gradient_steps "
+                                         f"{self.max_steps}", "steps")
 
     # -- the role loop's Worker ---------------------------------------------------------------
     @property
@@ -274,9 +292,8 @@ class A3CLearner(LearnerBase):
     def step(self, timeout_s: float) -> bool:
         """Apply the next queued gradient, if one comes within ``timeout_s``; broadcast every
         ``a3c.broadcast_every`` applications (and after a version resync)."""
-        try:
-            item = self._q.get(timeout=timeout_s)
-        except queue.Empty:
+        item = self._q.get(timeout_s)
+        if item is None:
             return False
         before = self.env_steps_trained
         if self.handle(*item) == APPLIED:
@@ -302,10 +319,11 @@ class A3CLearner(LearnerBase):
             "env_steps_trained": self.env_steps_trained, "grad_norm": self._norm_sum / n,
             "policy_lag": self._lag_sum / n, "stale_dropped": self.stale_dropped,
             "unknown_version_dropped": self.unknown_version_dropped,
-            "queue_dropped": self.queue_dropped, "queue_len": self._q.qsize(),
+            "queue_dropped": self.queue_dropped, "queue_len": len(self._q),
             "params_restored": self.applier.restored, "send_dropped": self._sender.dropped,
             "lr": self.applier.current_lr()}
         vals.update(self.rejects.as_values())
+        vals.update(self._q.evicted_values())
         line = None
         if self._n_applied:
             line = (f"updates {self.applier.updates} v{self.applier.version} {vals['updates_per_s']:.1f} upd/s "

@@ -1,0 +1,132 @@
+"""The per-source fair queue of the A3C learner's gradients: bounded, a flooding source only
+evicts its own messages, sources served round-robin; and the learner's checks of what a gradient
+claims (its sender, its env steps)."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from zenrl.common import protocol as P
+from zenrl.common.config import load_config
+from zenrl.learner.a3c import APPLIED, A3CLearner
+from zenrl.learner.fair_queue import FairQueue
+
+
+def _drain(q):
+    out = []
+    while (item := q.get(0.0)) is not None:
+        out.append(item)
+    return out
+
+
+def test_round_robin_across_sources_fifo_within():
+    q = FairQueue(100)
+    for i in range(5):
+        q.put("flood", ("flood", i))
+    q.put("a", ("a", 0))
+    q.put("b", ("b", 0))
+    q.put("a", ("a", 1))
+    got = [item for _, item in _drain(q)]
+    assert got == [("flood", 0), ("a", 0), ("b", 0), ("flood", 1), ("a", 1), ("flood", 2), ("flood", 3), ("flood", 4)]
+    assert len(q) == 0 and q.counters["taken"] == 8
+
+
+def test_a_flood_evicts_only_its_own_messages():
+    q = FairQueue(10)
+    honest = []
+    for i in range(1000):
+        q.put("flood", i)
+        if i % 250 == 0:  # 4 in all: below its fair share of the 10 places
+            q.put("honest", i)
+            honest.append(i)
+    assert len(q) == 10
+    got = _drain(q)
+    assert [v for s, v in got if s == "honest"] == honest  # every honest message survived, in order
+    assert q.counters["evicted"] == 1000 + len(honest) - 10
+    assert q.evicted_values() == {"queue_dropped_from/flood": q.counters["evicted"]}
+
+
+def test_brute_force_reference_of_eviction_and_order():
+    """Random puts and gets against a plain reference model of the same rules."""
+    rng = np.random.default_rng(0)
+    q, ref, turn = FairQueue(7), {}, []
+    for step in range(3000):
+        if rng.random() < 0.7:
+            src = f"s{int(rng.integers(0, 4))}"
+            if sum(map(len, ref.values())) >= 7:
+                mine = len(ref.get(src, []))
+                best = max(ref, key=lambda s: len(ref[s]))
+                victim = src if mine and mine >= len(ref[best]) else best
+                ref[victim].pop(0)
+                if not ref[victim]:
+                    del ref[victim]
+                    turn.remove(victim)
+            if src not in ref:
+                ref[src] = []
+                turn.append(src)
+            ref[src].append(step)
+            q.put(src, step)
+        else:
+            got = q.get(0.0)
+            if not ref:
+                assert got is None
+                continue
+            src = turn.pop(0)
+            turn.append(src)
+            want = (src, ref[src].pop(0))
+            if not ref[src]:
+                del ref[src]
+                turn.remove(src)
+            assert got == want, step
+        assert q.sizes() == {s: len(v) for s, v in ref.items()}
+
+
+def test_get_waits_for_a_put_and_times_out():
+    q = FairQueue(3)
+    assert q.get(0.01) is None
+    t = threading.Timer(0.05, q.put, ("a", 1))
+    t.start()
+    assert q.get(5.0) == ("a", 1)
+    t.join()
+    with pytest.raises(ValueError):
+        FairQueue(0)
+
+
+def _learner(tmp_path, *sets):
+    cfg = load_config(None, [f"runs_dir={tmp_path}", "algo=a3c", "network.hidden=[8]", "actor.envs_per_actor=4",
+                             "a3c.t_max=5", *sets], environ={})
+    svc = A3CLearner(cfg, node=None, run_id="fq")
+    svc.applier.next_version()
+    return svc
+
+
+def _grads(svc, steps, worker="w0", scale=0.01):
+    g = {k: np.full(p.shape, scale, np.float32) for k, p in svc.net.named_parameters()}
+    return P.Gradients(worker_id=worker, version=svc.applier.version, steps=steps, grads=g).encode()
+
+
+def test_steps_are_bounded_by_one_rollout(tmp_path):
+    svc = _learner(tmp_path)
+    assert svc.max_steps == 20
+    assert svc.handle("run/gradients/w0", _grads(svc, 20)) == APPLIED and svc.env_steps_trained == 20
+    for steps in (21, 2**40, 2**64 - 1):
+        assert svc.handle("run/gradients/w0", _grads(svc, steps)) is None
+    assert svc.rejects.counts["steps"] == 3 and svc.env_steps_trained == 20 and svc.applier.updates == 1
+    assert _learner(tmp_path, "a3c.max_gradient_steps=64").max_steps == 64
+
+
+def test_a_gradient_sent_under_another_workers_name_is_rejected(tmp_path):
+    svc = _learner(tmp_path)
+    assert svc.handle("run/gradients/w1", _grads(svc, 5, worker="w0")) is None
+    assert svc.rejects.counts["source"] == 1 and svc.applier.updates == 0
+
+
+def test_the_learner_serves_a_quiet_worker_between_a_floods_messages(tmp_path):
+    svc = _learner(tmp_path)
+    for _ in range(200):
+        svc._on_gradients("run/gradients/flood", _grads(svc, 20, worker="flood"))
+    svc._on_gradients("run/gradients/honest", _grads(svc, 20, worker="honest"))
+    assert svc.queue_dropped == 200 + 1 - svc._q.max_items
+    first = [svc._q.get(0.0)[0] for _ in range(2)]
+    assert "honest" in first  # served within one round, not after the flood
