@@ -6,7 +6,9 @@ Workers (:mod:`zenrl.actor.a3c`) publish :class:`~zenrl.common.protocol.Gradient
 fair per source (:class:`~zenrl.learner.fair_queue.FairQueue`: one FIFO per worker key, served
 round-robin; a full queue evicts the oldest message of the worker holding the most and counts it
 in ``queue_dropped`` and ``queue_dropped_from/<worker>``, so the sender is never stalled and a
-worker that floods pushes out only its own gradients); the main loop decodes, validates and
+worker that floods pushes out only its own gradients; ``applied_from/<worker>`` and
+``stale_from/<worker>`` in the stats show each worker's share). The
+main loop decodes, validates and
 applies each gradient as it arrives with one shared optimizer (RMSProp by default for A3C, as in
 the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the parameters every
 ``a3c.broadcast_every`` applications with a strictly increasing ``version`` (low priority, on the
@@ -24,7 +26,9 @@ Which gradients are applied (:class:`GradientApplier`, pure, unit-tested):
   last broadcast and the optimizer state is reset;
 * a gradient taken at params ``version`` v is dropped (``stale_dropped``) if the current version
   is more than ``a3c.max_staleness`` ahead of v, and dropped (``unknown_version_dropped``) if v is
-  newer than the current version. The latter only happens after a learner restart from a
+  newer than the current version (a claim more than ``MAX_RESYNC_AHEAD`` above the version the
+  learner started at, or within ``max_staleness + 1`` applied gradients of the last resync, is
+  dropped without resync). The latter only happens after a learner restart from a
   checkpoint older than the params the workers hold; the learner then jumps its version past the
   claimed one (and past the staleness window) so that its next broadcast is taken by the workers
   again instead of being ignored as old.
@@ -35,6 +39,7 @@ gradient further back would be stale by the time it is applied anyway.
 
 from __future__ import annotations
 
+import collections
 import logging
 from pathlib import Path
 from typing import Any, Mapping
@@ -51,7 +56,7 @@ from zenrl.common.networks import ActorCritic, arch_fingerprint, params_to_array
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.base import LearnerBase
-from zenrl.learner.fair_queue import FairQueue
+from zenrl.learner.fair_queue import MAX_TRACKED, TOP_EVICTED, FairQueue
 from zenrl.learner.sender import BackgroundSender
 
 log = logging.getLogger(__name__)
@@ -59,6 +64,11 @@ log = logging.getLogger(__name__)
 #: Largest version a worker may claim before the learner resyncs to it (keeps versions far from
 #: the uint64 limit of the wire format whatever a faulty worker sends).
 MAX_RESYNC_VERSION = 1 << 53
+#: Furthest a claimed version may lie above the version the learner started (or resumed) at
+#: for it to resync: the run's version mark is reserved 1000 versions ahead, so workers are only
+#: ahead of a resumed learner when the mark could not be written (a full disk) for a long time.
+#: Bounds what messages claiming future versions can add to the version, over the learner's life.
+MAX_RESYNC_AHEAD = 1 << 20
 
 APPLIED = "applied"
 STALE = "stale"
@@ -89,6 +99,8 @@ class GradientApplier:
         self.updates = 0
         self.restored = 0
         self._good = [p.detach().clone() for p in self.params.values()]
+        self._start_version = 0
+        self._last_resync: int | None = None  # ``updates`` at the last resync
 
     def check(self, msg: P.Gradients) -> None:
         """Raise :class:`ProtocolError` if ``msg.grads`` does not match the parameters."""
@@ -161,10 +173,17 @@ class GradientApplier:
 
     def resync(self, claimed: int) -> bool:
         """A worker holds params of version ``claimed`` > ours (we restarted from an older
-        checkpoint): jump past it and its staleness window. Returns whether the version moved."""
-        if claimed <= self.version or claimed > MAX_RESYNC_VERSION:
+        checkpoint): jump past it and its staleness window. Returns whether the version moved.
+        Bounded whatever workers claim: never above :data:`MAX_RESYNC_AHEAD` past the version
+        this learner started at, and at most once per ``a3c.max_staleness + 1`` applied
+        gradients (each jump makes every gradient in flight stale, so a worker claiming future
+        versions over and over would otherwise starve the others)."""
+        if claimed <= self.version or claimed > min(MAX_RESYNC_VERSION, self._start_version + MAX_RESYNC_AHEAD):
+            return False
+        if self._last_resync is not None and self.updates - self._last_resync <= self.acfg.max_staleness:
             return False
         self.version = claimed + self.acfg.max_staleness
+        self._last_resync = self.updates
         return True
 
     def load(self, model: Mapping[str, Any], optimizer: Mapping[str, Any], version: int, updates: int) -> None:
@@ -172,6 +191,7 @@ class GradientApplier:
         self.net.load_state_dict(model)
         self.opt.load_state_dict(optimizer)
         self.version, self.updates = int(version), int(updates)
+        self._start_version, self._last_resync = self.version, None
         self._good = [p.detach().clone() for p in self.params.values()]
 
 
@@ -190,6 +210,8 @@ class A3CLearner(LearnerBase):
         self.env_steps_trained = 0
         a = cfg.a3c
         self._q: FairQueue[bytes] = FairQueue((a.max_staleness + 1) * a.broadcast_every + cfg.actor.num_actors)
+        self._applied_by: collections.Counter[str] = collections.Counter()
+        self._stale_by: collections.Counter[str] = collections.Counter()
         #: most env steps one gradient message may claim
         self.max_steps = a.max_gradient_steps or a.t_max * cfg.actor.envs_per_actor
         self.queue_dropped = 0
@@ -249,6 +271,8 @@ class A3CLearner(LearnerBase):
             return None
         if outcome == STALE:
             self.stale_dropped += 1
+            if source in self._stale_by or len(self._stale_by) < MAX_TRACKED:
+                self._stale_by[source] += 1
         elif outcome == UNKNOWN_VERSION:
             self.unknown_version_dropped += 1
             if self.applier.resync(msg.version):
@@ -256,6 +280,8 @@ class A3CLearner(LearnerBase):
                             "(learner restarted from an older checkpoint?)", msg.worker_id, msg.version)
                 self._resync_pending = True
         else:
+            if source in self._applied_by or len(self._applied_by) < MAX_TRACKED:
+                self._applied_by[source] += 1
             self.env_steps_trained += msg.steps
             self._norm_sum += norm
             self._lag_sum += self.applier.version - msg.version
@@ -324,6 +350,8 @@ class A3CLearner(LearnerBase):
             "lr": self.applier.current_lr()}
         vals.update(self.rejects.as_values())
         vals.update(self._q.evicted_values())
+        vals.update({f"applied_from/{s}": n for s, n in self._applied_by.most_common(TOP_EVICTED)})
+        vals.update({f"stale_from/{s}": n for s, n in self._stale_by.most_common(TOP_EVICTED)})
         line = None
         if self._n_applied:
             line = (f"updates {self.applier.updates} v{self.applier.version} {vals['updates_per_s']:.1f} upd/s "

@@ -130,3 +130,24 @@ def test_the_learner_serves_a_quiet_worker_between_a_floods_messages(tmp_path):
     assert svc.queue_dropped == 200 + 1 - svc._q.max_items
     first = [svc._q.get(0.0)[0] for _ in range(2)]
     assert "honest" in first  # served within one round, not after the flood
+
+
+
+def test_future_version_claims_move_the_version_boundedly(tmp_path):
+    """A worker claiming versions ahead of the learner's (legitimate only after a restart from an
+    older checkpoint) makes it resync at most once per max_staleness + 1 applied gradients and
+    never beyond MAX_RESYNC_AHEAD past where it started."""
+    from zenrl.learner.a3c import MAX_RESYNC_AHEAD
+
+    svc = _learner(tmp_path, "a3c.max_staleness=2")
+    ap = svc.applier
+    assert ap.resync(ap.version + 5) and ap.version == 8
+    for _ in range(50):  # a flood of future claims: no further jump until 3 gradients are applied
+        assert not ap.resync(ap.version + 1)
+    for _ in range(3):
+        assert svc.handle("run/gradients/w0", _grads(svc, 20)) == APPLIED
+    assert not ap.resync(MAX_RESYNC_AHEAD + 1)  # past the ceiling: never
+    assert ap.resync(MAX_RESYNC_AHEAD) and ap.version == MAX_RESYNC_AHEAD + 2
+    for _ in range(3):
+        assert svc.handle("run/gradients/w0", _grads(svc, 20)) == APPLIED
+    assert not ap.resync(ap.version + 1) and ap.version < MAX_RESYNC_AHEAD + 10
