@@ -141,7 +141,10 @@ class ReplayLog:
         self.durable_through = 0
         for tmp in self.dir.glob(SNAPSHOT_TMP + "*"):
             log.info("removing %s, left by a snapshot write that was killed", tmp.name)
-            tmp.unlink(missing_ok=True)
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError as e:
+                log.warning("could not remove %s: %s", tmp.name, e)
 
     # -- reading ---------------------------------------------------------------------------
     def segments(self) -> list[Path]:
@@ -153,34 +156,46 @@ class ReplayLog:
         at the end of a segment (a torn tail) are cut off the file (``torn_records``)."""
         refs: list[RecordRef] = []
         for seg in self.segments():
-            cut = None
-            with open(seg, "rb") as f:
-                size = os.fstat(f.fileno()).st_size
-                if size == 0:
-                    continue
-                with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-                    pos = 0
-                    while pos < size:
-                        rec = _record_at(buf, pos)
-                        if rec is None:
-                            nxt = _next_record(buf, pos)
-                            if nxt < 0:
-                                cut = pos
-                                break
-                            self.corrupt_records += 1
-                            self.corrupt_bytes += nxt - pos
-                            log.warning("replay log %s: %d bad bytes at byte %d skipped; the records after them "
-                                        "are kept", seg.name, nxt - pos, pos)
-                            pos = nxt
-                            continue
-                        key, n, length = rec
-                        refs.append(RecordRef(seg, pos + HEADER.size, key, n, length))
-                        pos += HEADER.size + length
-            if cut is not None:
-                self.torn_records += 1
-                log.warning("replay log %s: torn or corrupt record at byte %d with no valid record after it; "
-                            "truncating there", seg.name, cut)
+            try:
+                refs.extend(self._index_segment(seg))
+            except OSError as e:  # an unreadable segment (EIO, not a file) costs its records only
+                self.corrupt_records += 1
+                log.warning("replay log %s unreadable (%s); its records are skipped", seg.name, e)
+        return refs
+
+    def _index_segment(self, seg: Path) -> list[RecordRef]:
+        refs: list[RecordRef] = []
+        cut = None
+        with open(seg, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if size == 0:
+                return refs
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+                pos = 0
+                while pos < size:
+                    rec = _record_at(buf, pos)
+                    if rec is None:
+                        nxt = _next_record(buf, pos)
+                        if nxt < 0:
+                            cut = pos
+                            break
+                        self.corrupt_records += 1
+                        self.corrupt_bytes += nxt - pos
+                        log.warning("replay log %s: %d bad bytes at byte %d skipped; the records after them "
+                                    "are kept", seg.name, nxt - pos, pos)
+                        pos = nxt
+                        continue
+                    key, n, length = rec
+                    refs.append(RecordRef(seg, pos + HEADER.size, key, n, length))
+                    pos += HEADER.size + length
+        if cut is not None:
+            self.torn_records += 1
+            log.warning("replay log %s: torn or corrupt record at byte %d with no valid record after it; "
+                        "truncating there", seg.name, cut)
+            try:
                 os.truncate(seg, cut)
+            except OSError as e:  # then the reader skips those bytes again next time
+                log.warning("replay log %s: could not truncate (%s)", seg.name, e)
         return refs
 
     def read_ref(self, ref: RecordRef) -> Record:
@@ -276,7 +291,11 @@ class ReplayLog:
         removed = 0
         for seg, nxt in zip(segs, segs[1:]):  # never the newest (it is being written)
             if int(nxt.name[4:20]) <= oldest_live_key:
-                seg.unlink(missing_ok=True)
+                try:
+                    seg.unlink(missing_ok=True)
+                except OSError as e:  # not worth degrading the log for: it is retried at the next prune
+                    log.warning("replay log: could not delete %s: %s", seg.name, e)
+                    continue
                 removed += 1
         return removed
 

@@ -341,3 +341,16 @@ def test_pack_header_covers_every_header_byte():
         bad = bytearray(h)
         bad[i] ^= 0x10
         assert zlib.crc32(bytes(bad[:24])) != struct.unpack("<I", h[24:])[0]
+
+
+def test_an_unreadable_segment_costs_only_its_records(tmp_path):
+    a = _service(tmp_path, segment_items=32)
+    for i in range(6):
+        a.ingest(_payload(i))
+    a.close()
+    segs = a.journal.segments()
+    assert len(segs) == 3
+    segs[0].unlink()
+    segs[0].mkdir()  # open() of it raises an OSError, as a segment on a failing sector would
+    b = _service(tmp_path, segment_items=32)
+    assert _by_key(b) == {k: float(k // 16) for k in range(32, 96)} and b.journal.corrupt_records == 1
