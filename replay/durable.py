@@ -94,7 +94,7 @@ def _record_at(buf: "mmap.mmap", pos: int) -> tuple[int, int, int] | None:
     elif magic != MAGIC_V1 or hcrc != 0:
         return None
     start = pos + HEADER.size
-    if n < 1 or length > len(buf) - start or zlib.crc32(buf[start:start + length]) != crc:
+    if not 0 < length <= len(buf) - start or zlib.crc32(buf[start:start + length]) != crc:
         return None
     return key, n, length
 

@@ -46,11 +46,16 @@ log = logging.getLogger(__name__)
 
 def contiguous_suffix(refs: list[RecordRef]) -> int:
     """Index of the first record of the longest tail of ``refs`` whose keys run on without a gap
-    or overlap (``first_key`` of each = ``first_key + n_items`` of the one before)."""
-    start = 0
-    for i in range(1, len(refs)):
-        if refs[i].first_key != refs[i - 1].first_key + refs[i - 1].n_items:
+    or overlap (``first_key`` of each = ``first_key + n_items`` of the one before with items).
+    Records of no items (a frame chunk whose transitions were all dropped: it still carries
+    frames) hold no key and are not compared."""
+    start, end = 0, None
+    for i, r in enumerate(refs):
+        if not r.n_items:
+            continue
+        if end is not None and r.first_key != end:
             start = i
+        end = r.first_key + r.n_items
     return start
 
 

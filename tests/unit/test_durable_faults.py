@@ -69,7 +69,7 @@ def _read(tmp_path):
 
 
 def test_a_flipped_byte_anywhere_costs_only_its_record(tmp_path):
-    seg, spans = _write_log(tmp_path, [5, 40, 0, 17, 33, 2])
+    seg, spans = _write_log(tmp_path, [5, 40, 1, 17, 33, 2])
     clean = seg.read_bytes()
     for off in range(len(clean)):
         bad = bytearray(clean)
@@ -135,6 +135,8 @@ def test_contiguous_suffix():
     assert contiguous_suffix(refs) == 2
     assert contiguous_suffix(refs[:2]) == 0 and contiguous_suffix([]) == 0
     assert contiguous_suffix(refs[:2] + [R(None, 0, 1, 5, 0)]) == 2  # keys going back: a break too
+    # a record of no items (frames only) holds no key, whatever its header says
+    assert contiguous_suffix(refs[:2] + [R(None, 0, 99, 0, 0), R(None, 0, 6, 2, 0)]) == 0
 
 
 def test_a_bad_record_in_the_middle_neither_stops_start_up_nor_moves_keys(tmp_path):
