@@ -96,15 +96,30 @@ class Journal(ReplayLog):
             log.warning("replay log: keys jump from %d to %d (records lost or never logged); restoring from key %d on, "
                         "%d older logged items not restored", refs[start - 1].first_key + refs[start - 1].n_items,
                         refs[start].first_key, refs[start].first_key, self.skipped_items)
+        suffix = refs[start:]
+        # a record of no items holds no key (its header's is arbitrary): it goes at the key of the
+        # next record that has items, so that the storage, allocated from the first record, starts
+        # at the right key
+        at, keys = None, []
+        for ref in reversed(suffix):
+            if ref.n_items or at is None:
+                at = ref.first_key
+            keys.append(at)
+        keys.reverse()
         records = 0
-        for ref in refs[start:]:
-            rec = self.read_ref(ref)
+        for ref, key in zip(suffix, keys):
+            try:
+                rec = self.read_ref(ref)
+            except OSError as e:  # a sector gone bad since the index was read
+                log.warning("replay log %s: record at byte %d unreadable (%s); skipped", ref.path.name, ref.offset, e)
+                self.corrupt_records += 1
+                continue
             try:
                 msg = P.TransitionBatch.decode(rec.payload, max_bytes)
             except ProtocolError as e:  # a record we wrote under another config; never fatal
                 log.warning("skipping an undecodable log record: %s", e)
                 continue
-            records += ingest.insert_logged(msg, rec.payload, rec.first_key) is not None
+            records += ingest.insert_logged(msg, rec.payload, key) is not None
         if ingest.store is None:
             return 0
         buf = ingest.store.buffer
