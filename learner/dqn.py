@@ -11,6 +11,8 @@ Batch layout (flat names, B rows)::
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -42,16 +44,46 @@ def dqn_loss(q: torch.Tensor, action: torch.Tensor, target: torch.Tensor, weight
     return loss, td.abs().detach(), q_sa.detach()
 
 
+@dataclass
+class LossTerms:
+    """One batch's loss before the step: ``loss`` scalar (differentiable); ``priorities``
+    float[B] (detached); ``metrics()`` the step's extra metrics (called after a step);
+    ``bad()`` bool[B]: the items whose own forward values are non-finite or whose TD error
+    exceeds ``max_priority`` (called only when the step is refused)."""
+
+    loss: torch.Tensor
+    priorities: torch.Tensor
+    metrics: Callable[[], dict[str, float]]
+    bad: Callable[[], torch.Tensor]
+
+
+def index_batch(b: Mapping[str, Any], idx: torch.Tensor) -> dict[str, Any]:
+    """The rows ``idx`` (int64[K]) of every tensor in a batch (nested dicts of [B, ...] tensors)."""
+    return {k: index_batch(v, idx) if isinstance(v, Mapping) else v.index_select(0, idx) for k, v in b.items()}
+
+
 class DQNLearner:
-    """Online and target networks plus optimizer; :meth:`update` is one training step."""
+    """Online and target networks plus optimizer; :meth:`update` is one training step.
+
+    Poisoned items: when a batch's loss or gradient is non-finite, the items to blame are found
+    (their own forward values non-finite or |TD| above ``max_priority``; failing that, by
+    bisecting the batch on the finiteness of loss and gradient), the step is made on the other
+    items, and the blamed items' indices are left in :attr:`poisoned` for the caller to report
+    (the replay then never samples them again). A batch whose every item is to blame is the
+    learner's problem, not the batch's: skipped by the guard, nothing reported.
+    """
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig,
                  cfg: LearnerConfig, device: torch.device,
-                 network: Callable[[Mapping[str, ArraySpec], int, NetworkConfig], nn.Module] = QNetwork) -> None:
+                 network: Callable[[Mapping[str, ArraySpec], int, NetworkConfig], nn.Module] = QNetwork,
+                 max_priority: float = math.inf) -> None:
         """``network(obs_spec, n_actions, net_cfg)`` builds the online and the target network
-        (R2D2 gives its recurrent one)."""
+        (R2D2 gives its recurrent one). ``max_priority``: priorities are clipped to it (the
+        replay refuses updates above ``replay.max_priority``) and an item whose |TD| exceeds it
+        is blamed for a non-finite step."""
         self.cfg = cfg
         self.device = device
+        self.max_priority = float(max_priority)
         self.obs_spec = {k: v for k, v in spec.items() if k == "obs" or k.startswith("obs/")}
         self.online = network(self.obs_spec, n_actions, net_cfg).to(device)
         self.target = network(self.obs_spec, n_actions, net_cfg).to(device)
@@ -67,6 +99,10 @@ class DQNLearner:
         self.n_actions = int(n_actions)
         self.updates = 0
         self.guard = UpdateGuard(cfg.guard_max_bad_updates, cfg.guard_log_interval_s)
+        #: indices (int64[P]) into the last batch of :meth:`update` of the items found poisonous
+        self.poisoned = np.zeros(0, np.int64)
+        self.poisoned_total = 0  #: items found poisonous so far
+        self.repaired_updates = 0  #: steps made without the poisonous items of their batch
 
     def beta(self) -> float:
         frac = min(1.0, self.updates / self.cfg.beta_anneal_updates)
@@ -88,40 +124,109 @@ class DQNLearner:
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
         return t
 
-    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
-        """One step on a batch from :meth:`batch_to_tensors`; returns (metrics, new priorities
-        float32[B] = |td|). A non-finite loss or gradient skips the step (see :attr:`guard`):
-        metrics are then empty and priorities ``None``."""
+    def loss_terms(self, b: Mapping[str, Any]) -> LossTerms:
+        """Double-DQN n-step loss of a batch from :meth:`batch_to_tensors`."""
         with torch.no_grad():
             q_next_online = self.online(b["next_obs"])
             q_next_target = self.target(b["next_obs"])
             y = double_dqn_target(q_next_online, q_next_target, b["reward"].float(), b["n"], b["terminated"], self.cfg.gamma)
         q = self.online(b["obs"])
         loss, td_abs, q_sa = dqn_loss(q, b["action"], y, b["weights"], self.cfg.huber_delta)
-        stepped = self.optimize(loss)
-        if stepped is None:
+
+        def bad() -> torch.Tensor:
+            with torch.no_grad():
+                fin = (torch.isfinite(q).all(1) & torch.isfinite(q_next_online).all(1)
+                       & torch.isfinite(q_next_target).all(1))
+                return ~fin | ~(td_abs <= self.max_priority)  # NaN |td| is blamed too
+
+        return LossTerms(loss, td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad)
+
+    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
+        """One step on a batch (from :meth:`batch_to_tensors`); returns (metrics, new priorities
+        float32[B], clipped to ``max_priority``). Items found poisonous are left out of the step,
+        their indices in :attr:`poisoned` and their priorities 0 (not to be sent). A step that
+        cannot be made finite is skipped (see :attr:`guard`): metrics are then empty and
+        priorities ``None`` (:attr:`poisoned` may still name items)."""
+        self.poisoned = np.zeros(0, np.int64)
+        t = self.loss_terms(b)
+        loss_v, norm_v = self._backward(t.loss)
+        if math.isfinite(loss_v) and math.isfinite(norm_v):
+            return self._finish(t, loss_v, norm_v, None)
+        # refused: find the items to blame, then step on the others
+        self.opt.zero_grad(set_to_none=True)
+        bad = t.bad().cpu().numpy()
+        if not bad.any():
+            bad = np.zeros(bad.shape[0], bool)
+            bad[self._culprits(b, np.arange(bad.shape[0]))] = True
+        if bad.all() or not bad.any():  # nothing to blame, or everything: the learner's problem
+            self.guard.accept(loss_v, norm_v)
             return {}, None
-        loss_v, norm_v = stepped
-        metrics = {"loss": loss_v, "q_mean": float(q_sa.mean().item()), "grad_norm": norm_v}
-        return metrics, td_abs.cpu().numpy().astype(np.float32)
+        self.poisoned = np.flatnonzero(bad)
+        self.poisoned_total += self.poisoned.shape[0]
+        keep = torch.from_numpy(np.flatnonzero(~bad)).to(self.device)
+        t2 = self.loss_terms(index_batch(b, keep))
+        loss_v, norm_v = self._backward(t2.loss)
+        if not self.guard.accept(loss_v, norm_v):
+            self.opt.zero_grad(set_to_none=True)
+            return {}, None
+        self.repaired_updates += 1
+        return self._finish(t2, loss_v, norm_v, keep)
+
+    def _backward(self, loss: torch.Tensor) -> tuple[float, float]:
+        """Gradients of ``loss`` (clipped to ``grad_clip``); returns (loss, pre-clip gradient norm)."""
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        # the metrics' .item() calls, made before the step: the guard costs no extra device sync
+        return float(loss.item()), float(grad_norm.item())
+
+    def _finish(self, t: LossTerms, loss_v: float, norm_v: float,
+                keep: torch.Tensor | None) -> tuple[dict[str, float], np.ndarray]:
+        if keep is None:
+            self.guard.accept(loss_v, norm_v)  # finite: resets the run of skipped steps
+        self._step()
+        prios = t.priorities.clamp(max=self.max_priority).cpu().numpy().astype(np.float32)
+        if keep is not None:
+            full = np.zeros(keep.shape[0] + self.poisoned.shape[0], np.float32)
+            full[keep.cpu().numpy()] = prios
+            prios = full
+        return {"loss": loss_v, "grad_norm": norm_v, **t.metrics()}, prios
+
+    def _culprits(self, b: Mapping[str, Any], idx: np.ndarray) -> np.ndarray:
+        """Within ``idx`` (a set of items whose step is non-finite), the single items whose own
+        loss or gradient is non-finite, by bisection (O(k log B) small steps for k of them);
+        none when only a combination is (then nobody is blamed)."""
+        if idx.shape[0] == 1:
+            return idx
+        found = [self._culprits(b, h) for h in (idx[: idx.shape[0] // 2], idx[idx.shape[0] // 2:])
+                 if not self._finite_on(b, h)]
+        return np.concatenate(found) if found else np.zeros(0, np.int64)
+
+    def _finite_on(self, b: Mapping[str, Any], idx: np.ndarray) -> bool:
+        loss_v, norm_v = self._backward(self.loss_terms(index_batch(b, torch.from_numpy(idx).to(self.device))).loss)
+        self.opt.zero_grad(set_to_none=True)
+        return math.isfinite(loss_v) and math.isfinite(norm_v)
+
+    def _step(self) -> None:
+        self.opt.step()
+        self.updates += 1
+        if self.updates % self.cfg.target_update_period == 0:
+            self.target.load_state_dict(self.online.state_dict())
 
     def optimize(self, loss: torch.Tensor) -> tuple[float, float] | None:
         """One optimizer step on ``loss`` behind the guard (gradients clipped to
         ``grad_clip``), the target copied every ``target_update_period`` updates. Returns
         (loss, gradient norm), or None when the guard skipped the step."""
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        # the metrics' .item() calls, made before the step: the guard costs no extra device sync
-        loss_v, norm_v = float(loss.item()), float(grad_norm.item())
+        loss_v, norm_v = self._backward(loss)
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
             return None
-        self.opt.step()
-        self.updates += 1
-        if self.updates % self.cfg.target_update_period == 0:
-            self.target.load_state_dict(self.online.state_dict())
+        self._step()
         return loss_v, norm_v
+
+    def values(self) -> dict[str, int]:
+        """The guard's counters plus ``poisoned_items`` and ``repaired_updates``."""
+        return {**self.guard.values(), "poisoned_items": self.poisoned_total, "repaired_updates": self.repaired_updates}
 
     def params_finite(self) -> bool:
         """Whether the online and target networks are finite (checked before publish or save)."""
