@@ -55,6 +55,9 @@ class LossTerms:
     priorities: torch.Tensor
     metrics: Callable[[], dict[str, float]]
     bad: Callable[[], torch.Tensor]
+    #: scalar: how many items' |TD| exceed ``max_priority`` (None without a bound); read with the
+    #: loss, it refuses a step whose loss is finite but huge because of a few items
+    over: torch.Tensor | None = None
 
 
 def index_batch(b: Mapping[str, Any], idx: torch.Tensor) -> dict[str, Any]:
@@ -139,7 +142,14 @@ class DQNLearner:
                        & torch.isfinite(q_next_target).all(1))
                 return ~fin | ~(td_abs <= self.max_priority)  # NaN |td| is blamed too
 
-        return LossTerms(loss, td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad)
+        return LossTerms(loss, td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad, self._over(td_abs))
+
+    def _over(self, abs_td: torch.Tensor) -> torch.Tensor | None:
+        """How many rows of ``abs_td`` ([B] or [B, m]) have an entry above ``max_priority``."""
+        if math.isinf(self.max_priority):
+            return None
+        over = abs_td > self.max_priority
+        return (over.any(1) if over.dim() > 1 else over).sum()
 
     def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
         """One step on a batch (from :meth:`batch_to_tensors`); returns (metrics, new priorities
@@ -149,8 +159,8 @@ class DQNLearner:
         priorities ``None`` (:attr:`poisoned` may still name items)."""
         self.poisoned = np.zeros(0, np.int64)
         t = self.loss_terms(b)
-        loss_v, norm_v = self._backward(t.loss)
-        if math.isfinite(loss_v) and math.isfinite(norm_v):
+        loss_v, norm_v, n_over = self._backward(t.loss, t.over)
+        if math.isfinite(loss_v) and math.isfinite(norm_v) and not n_over:
             return self._finish(t, loss_v, norm_v, None)
         # refused: find the items to blame, then step on the others
         self.opt.zero_grad(set_to_none=True)
@@ -165,20 +175,23 @@ class DQNLearner:
         self.poisoned_total += self.poisoned.shape[0]
         keep = torch.from_numpy(np.flatnonzero(~bad)).to(self.device)
         t2 = self.loss_terms(index_batch(b, keep))
-        loss_v, norm_v = self._backward(t2.loss)
+        loss_v, norm_v, _ = self._backward(t2.loss)
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
             return {}, None
         self.repaired_updates += 1
         return self._finish(t2, loss_v, norm_v, keep)
 
-    def _backward(self, loss: torch.Tensor) -> tuple[float, float]:
-        """Gradients of ``loss`` (clipped to ``grad_clip``); returns (loss, pre-clip gradient norm)."""
+    def _backward(self, loss: torch.Tensor, over: torch.Tensor | None = None) -> tuple[float, float, int]:
+        """Gradients of ``loss`` (clipped to ``grad_clip``); returns (loss, pre-clip gradient
+        norm, ``over`` or 0), read in one device sync."""
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        # the metrics' .item() calls, made before the step: the guard costs no extra device sync
-        return float(loss.item()), float(grad_norm.item())
+        # the metrics' values, read before the step: the guard costs no extra device sync
+        parts = [loss.detach().float(), grad_norm.float()] + ([] if over is None else [over.float()])
+        vals = torch.stack(parts).tolist()
+        return vals[0], vals[1], int(vals[2]) if over is not None else 0
 
     def _finish(self, t: LossTerms, loss_v: float, norm_v: float,
                 keep: torch.Tensor | None) -> tuple[dict[str, float], np.ndarray]:
@@ -203,7 +216,7 @@ class DQNLearner:
         return np.concatenate(found) if found else np.zeros(0, np.int64)
 
     def _finite_on(self, b: Mapping[str, Any], idx: np.ndarray) -> bool:
-        loss_v, norm_v = self._backward(self.loss_terms(index_batch(b, torch.from_numpy(idx).to(self.device))).loss)
+        loss_v, norm_v, _ = self._backward(self.loss_terms(index_batch(b, torch.from_numpy(idx).to(self.device))).loss)
         self.opt.zero_grad(set_to_none=True)
         return math.isfinite(loss_v) and math.isfinite(norm_v)
 
@@ -217,7 +230,7 @@ class DQNLearner:
         """One optimizer step on ``loss`` behind the guard (gradients clipped to
         ``grad_clip``), the target copied every ``target_update_period`` updates. Returns
         (loss, gradient norm), or None when the guard skipped the step."""
-        loss_v, norm_v = self._backward(loss)
+        loss_v, norm_v, _ = self._backward(loss)
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
             return None

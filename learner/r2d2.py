@@ -80,7 +80,7 @@ class R2D2Core(DQNLearner):
         def bad() -> torch.Tensor:
             return ~(res.td.abs() <= self.max_priority).all(1) | ~torch.isfinite(res.priorities)
 
-        return LossTerms(res.loss, res.priorities.detach(), metrics, bad)
+        return LossTerms(res.loss, res.priorities.detach(), metrics, bad, self._over(res.td.abs()))
 
 class R2D2Learner(ApexLearner):
     """The R2D2 learner as a :class:`~zenrl.common.roles.Worker` (see the module docstring)."""
