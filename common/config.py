@@ -136,6 +136,7 @@ class LearnerConfig(_Section):
 
     guard_max_bad_updates: int = Field(10, ge=1, description="Non-finite loss or gradients skip the update; after this many skipped in a row the learner rolls back to its last good checkpoint (or to the last good parameters it published).")
     guard_log_interval_s: float = Field(10.0, gt=0, description="Skipped updates are logged at most once per this many seconds (with a count).")
+    max_abs_obs: float = Field(1e6, gt=0, description="Ape-X/R2D2: a sampled item with a floating-point observation of larger magnitude is left out of the step and reported to the replay as poisoned (it removes the item and charges its sender). An env's Box may allow such values (CartPole's velocity bounds are float32's max) but they make the network's float32 forward overflow; the default is far above every shipped env's observations.")
     @model_validator(mode="after")
     def _check(self) -> "LearnerConfig":
         if self.batch_size * self.batches_per_request > MAX_SAMPLE_BATCH:

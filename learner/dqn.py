@@ -34,14 +34,36 @@ def double_dqn_target(q_next_online: torch.Tensor, q_next_target: torch.Tensor, 
     return reward + discount * q_next_target.gather(1, a_star).squeeze(1)
 
 
+def dqn_item_losses(q: torch.Tensor, action: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
+                    huber_delta: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-item IS-weighted Huber losses. q float[B, A], action int64[B], target/weights float[B].
+    Returns (losses float[B], |td| float[B], Q(s, a) float[B])."""
+    q_sa = q.gather(1, action.long().unsqueeze(1)).squeeze(1)
+    td = target.detach() - q_sa
+    per = weights * F.huber_loss(q_sa, target.detach(), reduction="none", delta=huber_delta)
+    return per, td.abs().detach(), q_sa.detach()
+
+
 def dqn_loss(q: torch.Tensor, action: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
              huber_delta: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """IS-weighted Huber loss. q float[B, A], action int64[B], target/weights float[B].
     Returns (loss scalar, |td| float[B], Q(s, a) float[B])."""
-    q_sa = q.gather(1, action.long().unsqueeze(1)).squeeze(1)
-    td = target.detach() - q_sa
-    loss = (weights * F.huber_loss(q_sa, target.detach(), reduction="none", delta=huber_delta)).mean()
-    return loss, td.abs().detach(), q_sa.detach()
+    per, td_abs, q_sa = dqn_item_losses(q, action, target, weights, huber_delta)
+    return per.mean(), td_abs, q_sa
+
+
+def screen_rows(data: Mapping[str, np.ndarray], names: Any, limit: float) -> np.ndarray:
+    """bool[B]: the rows of ``data`` with a floating-point value of magnitude above ``limit`` (or
+    NaN) in any of the fields ``names`` (arrays [B, ...]); integer fields (images) are bounded."""
+    bad: np.ndarray | None = None
+    for k in names:
+        a = data[k]
+        if a.dtype.kind != "f" or a.size == 0:
+            continue
+        m = ~(np.abs(a.reshape(a.shape[0], -1)).max(1) <= limit)
+        bad = m if bad is None else bad | m
+    n = len(next(iter(data.values())))
+    return np.zeros(n, bool) if bad is None else bad
 
 
 @dataclass
@@ -58,22 +80,35 @@ class LossTerms:
     #: scalar: how many items' |TD| exceed ``max_priority`` (None without a bound); read with the
     #: loss, it refuses a step whose loss is finite but huge because of a few items
     over: torch.Tensor | None = None
+    #: ``keep`` int64[K] -> the terms of those items from the same forward (no second forward);
+    #: valid when the items left out have finite forward values (:attr:`finite`); None: the
+    #: loss is recomputed on the kept items
+    subset: Callable[[torch.Tensor], "LossTerms"] | None = None
+    #: bool[B]: the items whose forward values are all finite
+    finite: Callable[[], torch.Tensor] | None = None
 
 
 def index_batch(b: Mapping[str, Any], idx: torch.Tensor) -> dict[str, Any]:
-    """The rows ``idx`` (int64[K]) of every tensor in a batch (nested dicts of [B, ...] tensors)."""
-    return {k: index_batch(v, idx) if isinstance(v, Mapping) else v.index_select(0, idx) for k, v in b.items()}
+    """The rows ``idx`` (int64[K]) of every tensor in a batch (nested dicts of [B, ...] tensors;
+    the bookkeeping entries, named ``_...``, are left out)."""
+    return {k: index_batch(v, idx) if isinstance(v, Mapping) else v.index_select(0, idx)
+            for k, v in b.items() if not k.startswith("_")}
 
 
 class DQNLearner:
     """Online and target networks plus optimizer; :meth:`update` is one training step.
 
-    Poisoned items: when a batch's loss or gradient is non-finite, the items to blame are found
+    Poisoned items, values an env's bounds allow that the network cannot take: items with an
+    observation beyond ``learner.max_abs_obs`` are left out of the batch when it is made
+    (:meth:`batch_to_tensors`, on the prefetcher's thread: the forward never sees them). When a
+    step's loss is non-finite or an item's |TD| exceeds ``max_priority`` (read with the loss,
+    before the backward pass), or its gradient is non-finite, the items to blame are found
     (their own forward values non-finite or |TD| above ``max_priority``; failing that, by
-    bisecting the batch on the finiteness of loss and gradient), the step is made on the other
-    items, and the blamed items' indices are left in :attr:`poisoned` for the caller to report
-    (the replay then never samples them again). A batch whose every item is to blame is the
-    learner's problem, not the batch's: skipped by the guard, nothing reported.
+    bisecting the batch on the finiteness of loss and gradient) and the step is made on the
+    others: from the same forward pass when the blamed items' values are finite, else by a
+    second one on the others. The left-out items' indices are in :attr:`poisoned` for the caller
+    to report (the replay then never samples them again). A batch whose every item is to blame
+    is the learner's problem, not the batch's: skipped by the guard, nothing reported.
     """
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig,
@@ -118,13 +153,29 @@ class DQNLearner:
             raise ValueError(f"batch has action {int(a.max()) if int(a.max()) >= self.n_actions else int(a.min())} "
                              f"outside 0..{self.n_actions - 1}")
 
+    def screen(self, data: Mapping[str, np.ndarray], weights: np.ndarray,
+               fields: Any) -> tuple[Mapping[str, np.ndarray], np.ndarray, dict[str, Any]]:
+        """Leave out the rows with an observation (``fields``) beyond ``max_abs_obs``: returns
+        (data, weights, bookkeeping) where the bookkeeping entries name the rows kept (``_rows``
+        int64[K] or None when all are) and left out (``_screened`` int64[P]) and the batch size
+        (``_n``)."""
+        n = len(weights)
+        bad = screen_rows(data, fields, self.cfg.max_abs_obs)
+        if not bad.any():
+            return data, weights, {"_rows": None, "_screened": np.zeros(0, np.int64), "_n": n}
+        rows = np.flatnonzero(~bad)
+        return ({k: v[rows] for k, v in data.items()}, np.asarray(weights)[rows],
+                {"_rows": rows, "_screened": np.flatnonzero(bad), "_n": n})
+
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
-        """Tensors for :meth:`update` (:meth:`check_actions` first)."""
+        """Tensors for :meth:`update` (:meth:`check_actions` first, then :meth:`screen`)."""
         self.check_actions(data["action"])
+        data, weights, book = self.screen(data, weights, [k for k in data if k.startswith(("obs", "next_obs"))])
         t = to_tensors({k: v for k, v in data.items() if k in ("action", "reward", "n", "terminated")}, self.device)
         t["obs"] = to_tensors({k: data[k] for k in self.obs_spec}, self.device)
         t["next_obs"] = to_tensors(rename_prefix(data, "next_obs", "obs"), self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
+        t.update(book)
         return t
 
     def loss_terms(self, b: Mapping[str, Any]) -> LossTerms:
@@ -134,15 +185,23 @@ class DQNLearner:
             q_next_target = self.target(b["next_obs"])
             y = double_dqn_target(q_next_online, q_next_target, b["reward"].float(), b["n"], b["terminated"], self.cfg.gamma)
         q = self.online(b["obs"])
-        loss, td_abs, q_sa = dqn_loss(q, b["action"], y, b["weights"], self.cfg.huber_delta)
+        per, td_abs, q_sa = dqn_item_losses(q, b["action"], y, b["weights"], self.cfg.huber_delta)
+
+        def finite() -> torch.Tensor:
+            with torch.no_grad():
+                return (torch.isfinite(q).all(1) & torch.isfinite(q_next_online).all(1)
+                        & torch.isfinite(q_next_target).all(1) & torch.isfinite(y))
 
         def bad() -> torch.Tensor:
-            with torch.no_grad():
-                fin = (torch.isfinite(q).all(1) & torch.isfinite(q_next_online).all(1)
-                       & torch.isfinite(q_next_target).all(1))
-                return ~fin | ~(td_abs <= self.max_priority)  # NaN |td| is blamed too
+            return ~finite() | ~(td_abs <= self.max_priority)  # NaN |td| is blamed too
 
-        return LossTerms(loss, td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad, self._over(td_abs))
+        def subset(keep: torch.Tensor) -> LossTerms:
+            qk = q_sa.index_select(0, keep)
+            return LossTerms(per.index_select(0, keep).mean(), td_abs.index_select(0, keep),
+                             lambda: {"q_mean": float(qk.mean().item())}, bad)
+
+        return LossTerms(per.mean(), td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad,
+                         self._over(td_abs), subset, finite)
 
     def _over(self, abs_td: torch.Tensor) -> torch.Tensor | None:
         """How many rows of ``abs_td`` ([B] or [B, m]) have an entry above ``max_priority``."""
@@ -152,56 +211,78 @@ class DQNLearner:
         return (over.any(1) if over.dim() > 1 else over).sum()
 
     def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
+        """:meth:`step_on` the batch, counting the items left out."""
+        out = self.step_on(b)
+        self.poisoned_total += self.poisoned.shape[0]
+        return out
+
+    def step_on(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
         """One step on a batch (from :meth:`batch_to_tensors`); returns (metrics, new priorities
         float32[B], clipped to ``max_priority``). Items found poisonous are left out of the step,
         their indices in :attr:`poisoned` and their priorities 0 (not to be sent). A step that
         cannot be made finite is skipped (see :attr:`guard`): metrics are then empty and
         priorities ``None`` (:attr:`poisoned` may still name items)."""
-        self.poisoned = np.zeros(0, np.int64)
+        rows, screened = b.get("_rows"), b.get("_screened", np.zeros(0, np.int64))
+        self.poisoned = screened
         t = self.loss_terms(b)
-        loss_v, norm_v, n_over = self._backward(t.loss, t.over)
-        if math.isfinite(loss_v) and math.isfinite(norm_v) and not n_over:
-            return self._finish(t, loss_v, norm_v, None)
-        # refused: find the items to blame, then step on the others
-        self.opt.zero_grad(set_to_none=True)
-        bad = t.bad().cpu().numpy()
-        if not bad.any():
-            bad = np.zeros(bad.shape[0], bool)
+        loss_v, n_over = self._read(t.loss, t.over)
+        norm_v = math.nan
+        reuse = t.subset is not None and t.finite is not None  # the forward's graph is still there
+        if math.isfinite(loss_v) and not n_over:
+            norm_v = self._backward(t.loss)
+            if math.isfinite(norm_v):
+                self.guard.accept(loss_v, norm_v)  # resets the run of skipped steps
+                return self._finish(b, t, loss_v, norm_v, None)
+            self.opt.zero_grad(set_to_none=True)
+            reuse = False  # the backward pass freed it
+            bad = np.zeros(len(t.priorities), bool)
             bad[self._culprits(b, np.arange(bad.shape[0]))] = True
+        else:
+            bad = t.bad().cpu().numpy()
+            if not bad.any():
+                bad[self._culprits(b, np.arange(bad.shape[0]))] = True
         if bad.all() or not bad.any():  # nothing to blame, or everything: the learner's problem
             self.guard.accept(loss_v, norm_v)
             return {}, None
-        self.poisoned = np.flatnonzero(bad)
-        self.poisoned_total += self.poisoned.shape[0]
+        blamed = np.flatnonzero(bad)
+        self.poisoned = np.sort(np.concatenate([screened, blamed if rows is None else rows[blamed]]))
         keep = torch.from_numpy(np.flatnonzero(~bad)).to(self.device)
-        t2 = self.loss_terms(index_batch(b, keep))
-        loss_v, norm_v, _ = self._backward(t2.loss)
+        if reuse and bool(t.finite()[torch.from_numpy(blamed).to(self.device)].all()):
+            t2 = t.subset(keep)  # the same forward pass: the blamed items' gradients are exact zeros
+        else:
+            t2 = self.loss_terms(index_batch(b, keep))
+        loss_v, _ = self._read(t2.loss)
+        norm_v = self._backward(t2.loss)
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
             return {}, None
         self.repaired_updates += 1
-        return self._finish(t2, loss_v, norm_v, keep)
+        return self._finish(b, t2, loss_v, norm_v, keep)
 
-    def _backward(self, loss: torch.Tensor, over: torch.Tensor | None = None) -> tuple[float, float, int]:
-        """Gradients of ``loss`` (clipped to ``grad_clip``); returns (loss, pre-clip gradient
-        norm, ``over`` or 0), read in one device sync."""
+    def _read(self, loss: torch.Tensor, over: torch.Tensor | None = None) -> tuple[float, int]:
+        """(loss, ``over`` or 0), read in one device sync before the backward pass."""
+        if over is None:
+            return float(loss.item()), 0
+        v = torch.stack([loss.detach().float(), over.float()]).tolist()
+        return v[0], int(v[1])
+
+    def _backward(self, loss: torch.Tensor) -> float:
+        """Gradients of ``loss`` (clipped to ``grad_clip``); returns the pre-clip gradient norm."""
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        # the metrics' values, read before the step: the guard costs no extra device sync
-        parts = [loss.detach().float(), grad_norm.float()] + ([] if over is None else [over.float()])
-        vals = torch.stack(parts).tolist()
-        return vals[0], vals[1], int(vals[2]) if over is not None else 0
+        return float(nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip).item())
 
-    def _finish(self, t: LossTerms, loss_v: float, norm_v: float,
+    def _finish(self, b: Mapping[str, Any], t: LossTerms, loss_v: float, norm_v: float,
                 keep: torch.Tensor | None) -> tuple[dict[str, float], np.ndarray]:
-        if keep is None:
-            self.guard.accept(loss_v, norm_v)  # finite: resets the run of skipped steps
+        """Step, and the priorities of the whole batch as sampled (0 where left out)."""
         self._step()
         prios = t.priorities.clamp(max=self.max_priority).cpu().numpy().astype(np.float32)
+        rows = b.get("_rows")
         if keep is not None:
-            full = np.zeros(keep.shape[0] + self.poisoned.shape[0], np.float32)
-            full[keep.cpu().numpy()] = prios
+            rows = keep.cpu().numpy() if rows is None else rows[keep.cpu().numpy()]
+        if rows is not None:
+            full = np.zeros(b["_n"], np.float32)
+            full[rows] = prios
             prios = full
         return {"loss": loss_v, "grad_norm": norm_v, **t.metrics()}, prios
 
@@ -216,9 +297,10 @@ class DQNLearner:
         return np.concatenate(found) if found else np.zeros(0, np.int64)
 
     def _finite_on(self, b: Mapping[str, Any], idx: np.ndarray) -> bool:
-        loss_v, norm_v, _ = self._backward(self.loss_terms(index_batch(b, torch.from_numpy(idx).to(self.device))).loss)
+        loss = self.loss_terms(index_batch(b, torch.from_numpy(idx).to(self.device))).loss
+        norm_v = self._backward(loss)
         self.opt.zero_grad(set_to_none=True)
-        return math.isfinite(loss_v) and math.isfinite(norm_v)
+        return math.isfinite(float(loss.item())) and math.isfinite(norm_v)
 
     def _step(self) -> None:
         self.opt.step()
@@ -230,7 +312,8 @@ class DQNLearner:
         """One optimizer step on ``loss`` behind the guard (gradients clipped to
         ``grad_clip``), the target copied every ``target_update_period`` updates. Returns
         (loss, gradient norm), or None when the guard skipped the step."""
-        loss_v, norm_v, _ = self._backward(loss)
+        norm_v = self._backward(loss)
+        loss_v = float(loss.item())
         if not self.guard.accept(loss_v, norm_v):
             self.opt.zero_grad(set_to_none=True)
             return None

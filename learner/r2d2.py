@@ -58,10 +58,12 @@ class R2D2Core(DQNLearner):
         self.rcfg = rcfg
 
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
-        """Tensors for :meth:`update` (:meth:`check_actions` first)."""
+        """Tensors for :meth:`update` (:meth:`check_actions` first, then :meth:`screen`)."""
         self.check_actions(data["action"])
+        data, weights, book = self.screen(data, weights, list(self.obs_spec))
         t = to_tensors({k: data[k] for k in (*self.obs_spec, *BATCH_FIELDS)}, self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
+        t.update(book)
         return t
 
     def loss_terms(self, b: Mapping[str, Any]) -> LossTerms:

@@ -60,10 +60,11 @@ def _expected_step():
     return np.abs(err), [p - LR * g / (np.abs(g) + EPS) for p, g in zip((W1, B1, W2, B2), grads)]
 
 
-def _learner(max_priority=math.inf):
+def _learner(max_priority=math.inf, max_abs_obs=math.inf):
     learner = DQNLearner({"obs": ArraySpec((3,), "float32")}, 2, NetworkConfig(hidden=[2], dueling=False),
                          LearnerConfig(lr=LR, adam_eps=EPS, gamma=GAMMA, huber_delta=DELTA, grad_clip=CLIP,
-                                       target_update_period=1000, optimizer="adam"), torch.device("cpu"),
+                                       target_update_period=1000, optimizer="adam", max_abs_obs=max_abs_obs),
+                         torch.device("cpu"),
                          max_priority=max_priority)
     f32 = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
     with torch.no_grad():
@@ -84,10 +85,11 @@ def _batch_with(at, **poison):
     return data, ins(ISW, row["w"], np.float32)
 
 
-def _check_step(learner, prios, metrics, at):
+def _check_step(learner, prios, metrics, at, repaired=1):
     td, expected = _expected_step()
     np.testing.assert_array_equal(learner.poisoned, [at])
-    assert prios[at] == 0.0 and metrics["loss"] > 0 and learner.updates == 1 and learner.repaired_updates == 1
+    assert prios[at] == 0.0 and metrics["loss"] > 0 and learner.updates == 1
+    assert learner.repaired_updates == repaired and learner.poisoned_total == 1
     np.testing.assert_allclose(np.delete(prios, at), td, rtol=1e-5)
     lin1, lin2 = [m for m in learner.online.modules() if isinstance(m, torch.nn.Linear)]
     for name, g, e in zip(("W1", "b1", "W2", "b2"), [lin1.weight, lin1.bias, lin2.weight, lin2.bias], expected):
@@ -96,14 +98,20 @@ def _check_step(learner, prios, metrics, at):
 
 
 @pytest.mark.parametrize("poison", [
-    {"obs": [F32_MAX, 0.0, 0.0]},            # the forward overflows: Q(s) is inf
-    {"next_obs": [0.0, -F32_MAX, F32_MAX]},  # a finite but huge target: |TD| > max_priority
+    {"obs": [F32_MAX, 0.0, 0.0]},            # the forward overflows: Q(s) is inf (a second forward)
+    {"next_obs": [0.0, -F32_MAX, F32_MAX]},  # finite but huge: |TD| > max_priority (the same forward)
     {"obs": [0.0, F32_MAX, -F32_MAX], "next_obs": [F32_MAX, F32_MAX, F32_MAX]},
 ])
 def test_an_item_that_overflows_the_forward_is_blamed_and_the_others_stepped_as_by_hand(poison):
-    learner = _learner(max_priority=1e6)
+    learner = _learner(max_priority=1e6)  # no observation screen: blamed in the step
     metrics, prios = learner.update(learner.batch_to_tensors(*_batch_with(1, **poison)))
     _check_step(learner, prios, metrics, 1)
+    # with the screen (learner.max_abs_obs), left out before the forward: the same step
+    screened = _learner(max_priority=1e6, max_abs_obs=1e6)
+    b = screened.batch_to_tensors(*_batch_with(1, **poison))
+    assert b["obs"]["obs"].shape[0] == 3 and b["_screened"].tolist() == [1]
+    metrics, prios = screened.update(b)
+    _check_step(screened, prios, metrics, 1, repaired=0)
 
 
 def test_an_item_whose_td_exceeds_max_priority_is_blamed_when_the_sum_overflows():
@@ -121,8 +129,9 @@ def test_an_item_whose_td_exceeds_max_priority_is_blamed_when_the_sum_overflows(
 
 
 def test_an_item_with_a_finite_forward_but_an_overflowing_gradient_is_found_by_bisection():
-    """obs 1e25: Q and the loss are finite (so no forward value blames it), but the gradient of
-    the first layer's weights (obs times a bounded error) squares past float32's range."""
+    """obs 1e25 (without the observation screen): Q and the loss are finite (so no forward value
+    blames it), but the gradient of the first layer's weights (obs times a bounded error)
+    squares past float32's range."""
     learner = _learner()
     data, w = _batch_with(3, obs=[1e25, 1e25, 0.0], action=1)
     with torch.no_grad():
@@ -290,13 +299,15 @@ def test_cartpole_at_its_velocity_bound_no_longer_stalls_the_learner():
 
 
 # -- R2D2 -------------------------------------------------------------------------------------------
-def test_r2d2_blames_the_sequence_that_overflows_and_steps_on_the_others(tmp_path):
-    """One sequence of eight with a -float32-max observation inside its burn-in: the recurrent
-    state carries the overflow to every later step, so it alone is blamed; the step and the
-    other sequences' priorities are those of the same core stepped on the other seven."""
+@pytest.mark.parametrize("screen", [True, False])
+def test_r2d2_blames_the_sequence_that_overflows_and_steps_on_the_others(tmp_path, screen):
+    """One sequence of eight with a -float32-max observation inside its burn-in: left out by the
+    observation screen, or (without it) blamed in the step, the recurrent state having carried
+    the overflow to every later step; the step and the other sequences' priorities are those of
+    the same core stepped on the other seven."""
     from tests.unit.test_r2d2_learner import _batches, _cfg, _core
 
-    cfg = _cfg(tmp_path)
+    cfg = _cfg(tmp_path, *([] if screen else ["learner.max_abs_obs=1e39"]))
     (data, w), = _batches(cfg, 1)
     data = {k: v.copy() for k, v in data.items()}
     data["obs"][5, 1, :] = -F32_MAX  # (an LSTM saturates on many such values; not on this one)
@@ -310,4 +321,4 @@ def test_r2d2_blames_the_sequence_that_overflows_and_steps_on_the_others(tmp_pat
     assert prios[5] == 0 and m["loss"] == pytest.approx(m_ref["loss"], rel=1e-6)
     for a, b in zip(core.online.parameters(), ref.online.parameters()):
         torch.testing.assert_close(a, b)
-    assert core.updates == 1 and core.guard.skipped == 0
+    assert core.updates == 1 and core.guard.skipped == 0 and core.repaired_updates == (0 if screen else 1)
