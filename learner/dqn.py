@@ -58,8 +58,8 @@ def screen_rows(data: Mapping[str, np.ndarray], names: Any, limit: float) -> np.
     bad: np.ndarray | None = None
     for k in names:
         a = data[k]
-        if a.dtype.kind != "f" or a.size == 0:
-            continue
+        if a.dtype.kind != "f" or a.size == 0 or (float(a.max()) <= limit and float(a.min()) >= -limit):
+            continue  # (whole-array reductions: the common case costs two, not one per row)
         m = ~(np.abs(a.reshape(a.shape[0], -1)).max(1) <= limit)
         bad = m if bad is None else bad | m
     n = len(next(iter(data.values())))
@@ -77,8 +77,8 @@ class LossTerms:
     priorities: torch.Tensor
     metrics: Callable[[], dict[str, float]]
     bad: Callable[[], torch.Tensor]
-    #: scalar: how many items' |TD| exceed ``max_priority`` (None without a bound); read with the
-    #: loss, it refuses a step whose loss is finite but huge because of a few items
+    #: scalar: the largest |TD| (None without a bound on it); read with the loss, it refuses a
+    #: step whose loss is finite but huge because of a few items (|TD| above ``max_priority``)
     over: torch.Tensor | None = None
     #: ``keep`` int64[K] -> the terms of those items from the same forward (no second forward);
     #: valid when the items left out have finite forward values (:attr:`finite`); None: the
@@ -116,9 +116,9 @@ class DQNLearner:
                  network: Callable[[Mapping[str, ArraySpec], int, NetworkConfig], nn.Module] = QNetwork,
                  max_priority: float = math.inf) -> None:
         """``network(obs_spec, n_actions, net_cfg)`` builds the online and the target network
-        (R2D2 gives its recurrent one). ``max_priority``: priorities are clipped to it (the
-        replay refuses updates above ``replay.max_priority``) and an item whose |TD| exceeds it
-        is blamed for a non-finite step."""
+        (R2D2 gives its recurrent one). ``max_priority`` (``replay.max_priority``, above which
+        the replay refuses priority updates): an item whose |TD| exceeds it is left out of the
+        step and reported, so no priority returned exceeds it."""
         self.cfg = cfg
         self.device = device
         self.max_priority = float(max_priority)
@@ -204,11 +204,8 @@ class DQNLearner:
                          self._over(td_abs), subset, finite)
 
     def _over(self, abs_td: torch.Tensor) -> torch.Tensor | None:
-        """How many rows of ``abs_td`` ([B] or [B, m]) have an entry above ``max_priority``."""
-        if math.isinf(self.max_priority):
-            return None
-        over = abs_td > self.max_priority
-        return (over.any(1) if over.dim() > 1 else over).sum()
+        """The largest entry of ``abs_td`` (any shape), or None without a bound to compare it to."""
+        return None if math.isinf(self.max_priority) or abs_td.numel() == 0 else abs_td.max()
 
     def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
         """:meth:`step_on` the batch, counting the items left out."""
@@ -218,17 +215,17 @@ class DQNLearner:
 
     def step_on(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
         """One step on a batch (from :meth:`batch_to_tensors`); returns (metrics, new priorities
-        float32[B], clipped to ``max_priority``). Items found poisonous are left out of the step,
+        float32[B], none above ``max_priority``). Items found poisonous are left out of the step,
         their indices in :attr:`poisoned` and their priorities 0 (not to be sent). A step that
         cannot be made finite is skipped (see :attr:`guard`): metrics are then empty and
         priorities ``None`` (:attr:`poisoned` may still name items)."""
         rows, screened = b.get("_rows"), b.get("_screened", np.zeros(0, np.int64))
         self.poisoned = screened
         t = self.loss_terms(b)
-        loss_v, n_over = self._read(t.loss, t.over)
+        loss_v, top = self._read(t.loss, t.over)
         norm_v = math.nan
         reuse = t.subset is not None and t.finite is not None  # the forward's graph is still there
-        if math.isfinite(loss_v) and not n_over:
+        if math.isfinite(loss_v) and top <= self.max_priority:
             norm_v = self._backward(t.loss)
             if math.isfinite(norm_v):
                 self.guard.accept(loss_v, norm_v)  # resets the run of skipped steps
@@ -259,12 +256,12 @@ class DQNLearner:
         self.repaired_updates += 1
         return self._finish(b, t2, loss_v, norm_v, keep)
 
-    def _read(self, loss: torch.Tensor, over: torch.Tensor | None = None) -> tuple[float, int]:
+    def _read(self, loss: torch.Tensor, over: torch.Tensor | None = None) -> tuple[float, float]:
         """(loss, ``over`` or 0), read in one device sync before the backward pass."""
         if over is None:
-            return float(loss.item()), 0
-        v = torch.stack([loss.detach().float(), over.float()]).tolist()
-        return v[0], int(v[1])
+            return float(loss.item()), 0.0
+        v = torch.stack([loss.detach(), over.to(loss.dtype)]).tolist()
+        return v[0], v[1]
 
     def _backward(self, loss: torch.Tensor) -> float:
         """Gradients of ``loss`` (clipped to ``grad_clip``); returns the pre-clip gradient norm."""
@@ -276,7 +273,8 @@ class DQNLearner:
                 keep: torch.Tensor | None) -> tuple[dict[str, float], np.ndarray]:
         """Step, and the priorities of the whole batch as sampled (0 where left out)."""
         self._step()
-        prios = t.priorities.clamp(max=self.max_priority).cpu().numpy().astype(np.float32)
+        # each kept |TD| is <= max_priority (a larger one is blamed), or the guard has no bound
+        prios = t.priorities.cpu().numpy().astype(np.float32)
         rows = b.get("_rows")
         if keep is not None:
             rows = keep.cpu().numpy() if rows is None else rows[keep.cpu().numpy()]

@@ -58,6 +58,16 @@ class Origins:
             if len(self._names) < self.max_names:
                 sid = self._ids[source] = len(self._names)
                 self._names.append(source)
+        n = keys.shape[0]
+        if n == 0:
+            return
+        s0 = int(keys[0]) % capacity
+        if n <= capacity and int(keys[-1]) - int(keys[0]) == n - 1:  # a chunk's keys are consecutive
+            n1 = min(n, capacity - s0)
+            self._key[s0:s0 + n1], self._src[s0:s0 + n1] = keys[:n1], sid
+            if n1 < n:
+                self._key[:n - n1], self._src[:n - n1] = keys[n1:], sid
+            return
         slots = keys % capacity
         self._key[slots] = keys
         self._src[slots] = sid
