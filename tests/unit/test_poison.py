@@ -322,3 +322,33 @@ def test_r2d2_blames_the_sequence_that_overflows_and_steps_on_the_others(tmp_pat
     for a, b in zip(core.online.parameters(), ref.online.parameters()):
         torch.testing.assert_close(a, b)
     assert core.updates == 1 and core.guard.skipped == 0 and core.repaired_updates == (0 if screen else 1)
+
+
+# -- IMPALA -----------------------------------------------------------------------------------------
+def test_impala_leaves_out_the_unroll_that_overflows_charges_its_sender_and_steps_on_the_others(tmp_path):
+    """Unrolls are consumed once, so a skipped batch never stalls IMPALA, but it used to cost the
+    honest unrolls of the batch and charge nobody: now the poisoned unroll (inside CartPole's
+    bounds) is found by bisection, charged as ``poison``, and the step is the one on the rest."""
+    from tests.unit.test_impala import T, _cfg, _feed, _unroll
+    from zenrl.learner.impala import ImpalaLearner
+
+    def learner(batch):
+        torch.manual_seed(0)
+        svc = ImpalaLearner(_cfg(tmp_path, **{"impala.batch_unrolls": batch}), None, "t")
+        svc.start_offline()
+        return svc
+
+    svc, ref = learner(4), learner(3)
+    assert _feed(svc, 3, actor="honest") == ["queued"] * 3
+    obs = np.zeros((T + 1, 4), np.float32)
+    obs[2] = [0.0, -F32_MAX, 0.0, -F32_MAX]
+    poison = _unroll("evil", svc.version, seq=0, seed=9, obs={"obs": obs})
+    assert svc.on_unroll("zenrl/t/unrolls/evil", poison.encode()) == "queued"  # passes every check
+    assert svc.step(0.01) and svc.updates == 1 and svc.guard.skipped == 0
+    vals, _ = svc.report(1.0)
+    assert vals["poisoned_unrolls"] == 1 and vals["rejected_poison"] == 1 and vals["rejected_from/evil"] == 1
+    assert "rejected_from/honest" not in vals
+    assert _feed(ref, 3, actor="honest") == ["queued"] * 3
+    assert ref.step(0.01)
+    for a, b in zip(svc.net.parameters(), ref.net.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
