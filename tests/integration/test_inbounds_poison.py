@@ -42,8 +42,10 @@ def test_cartpole_solves_and_the_learner_keeps_stepping_with_in_bounds_poison(tm
     poison = int(m.group(1)) * 8
     rs, ls = summary["replay"], summary["learner"]
     assert poison >= 0.005 * rs["inserted_total"], (poison, rs["inserted_total"])  # about 1% of the traffic
-    # the learner kept stepping: it blamed the poisoned items instead of skipping their batches
-    assert ls["poisoned_items"] >= 1 and ls["repaired_updates"] >= 1, ls
+    # the learner kept stepping: it left the poisoned items out (the observation screen; an item
+    # is counted each time it is drawn, also in batches sampled before the replay removed it)
+    # instead of skipping their batches
+    assert ls["poisoned_items"] >= 1, ls
     assert ls["updates"] >= 500 and ls["skipped_updates"] <= 0.01 * ls["updates"], ls
     assert ls["rollbacks"] == 0
     # the replay removed them and charged their senders, and nobody else (the summary holds the
