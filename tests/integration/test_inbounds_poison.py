@@ -15,7 +15,7 @@ import pytest
 
 from tests.conftest import ROOT, free_port
 
-pytestmark = pytest.mark.integration  # ~30 s on 2 cores
+pytestmark = pytest.mark.integration  # ~40 s on 2 cores
 
 
 def test_cartpole_solves_and_the_learner_keeps_stepping_with_in_bounds_poison(tmp_path, run_id):
@@ -23,7 +23,10 @@ def test_cartpole_solves_and_the_learner_keeps_stepping_with_in_bounds_poison(tm
     ep = f"tcp/127.0.0.1:{port}"
     run = subprocess.Popen([sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_apex.yaml",
                             "--run-id", run_id, "--no-progress", "--set", f"runs_dir={tmp_path}",
-                            "--set", f"transport.listen=[{ep}]", "--set", "max_wall_s=300"],
+                            "--set", f"transport.listen=[{ep}]", "--set", "max_wall_s=300",
+                            # a fixed budget, not a stop at the solve: a run that solves before the
+                            # hostile process is up (a loaded machine) would test nothing
+                            "--set", "target_return=null", "--set", "max_updates=3000"],
                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     hostile = subprocess.Popen([sys.executable, "tests/integration/procs.py", "inbounds", "--router", ep, "--run", run_id,
                                 "--fraction", "0.01"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -36,7 +39,7 @@ def test_cartpole_solves_and_the_learner_keeps_stepping_with_in_bounds_poison(tm
         h_out, _ = hostile.communicate(timeout=30)
     assert run.returncode == 0, out[-3000:]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
-    assert summary["solved"], (summary["stop_reason"], [e["mean"] for e in summary["evals"]])
+    assert max(e["mean"] for e in summary["evals"]) >= 475, (summary["stop_reason"], [e["mean"] for e in summary["evals"]])
     m = re.search(r"INBOUNDS (\d+)", h_out)
     assert m and int(m.group(1)) >= 5, h_out[-2000:]
     poison = int(m.group(1)) * 8
