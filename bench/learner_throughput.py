@@ -29,6 +29,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
     python bench/learner_throughput.py            # full run (~1.5-2 min)
     python bench/learner_throughput.py --quick    # one short round (~40 s)
     python bench/learner_throughput.py --guard-only   # the learner guard's cost per update (~35 s)
+    python bench/learner_throughput.py --poison       # 1% in-bounds poison vs none; the checks' cost
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -166,6 +167,154 @@ def guard_overhead(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: fl
             "update_us_unguarded": round(off, 1), "guard_rounds": rounds, "target_guard_overhead_ratio": 1.02}
 
 
+POISON_FRACTION = 0.01
+POISON_TARGET = 0.9
+CHECKS_TARGET = 1.02
+ORIGINS_TARGET = 1.05
+
+
+def poisoned_chunk(rng: np.random.Generator, b: int, fraction: float, value: float) -> dict[str, np.ndarray]:
+    """A CartPole chunk in which each item has, with probability ``fraction``, ``value`` (e.g.
+    float32's max, inside CartPole's Box) as one of its velocities (obs or next_obs)."""
+    d = cartpole_batch(rng, b)
+    for i in np.flatnonzero(rng.random(b) < fraction):
+        d["obs" if rng.random() < 0.5 else "next_obs"][i, 1 if rng.random() < 0.5 else 3] = value * rng.choice([-1, 1])
+    d["meta/policy_version"] = np.zeros(b, np.int64)
+    return d
+
+
+def poison_loop(cfg: Any, spec: Any, n_actions: int, fraction: float, value: float, seed: int) -> tuple[Any, Any]:
+    """One step of the learner's loop against an in-memory replay, and the learner: insert a
+    chunk of ``CHUNK`` items (``fraction`` of them poisoned), sample a batch of ``BATCH``,
+    ``batch_to_tensors`` + ``update``, the priorities of the kept items back and the poisoned
+    ones removed (what the replay does with a ``poisoned`` report)."""
+    import torch
+
+    from zenrl.common.networks import resolve_device
+    from zenrl.common.specs import spec_of_batch
+    from zenrl.learner.dqn import DQNLearner
+    from zenrl.replay.buffer import InMemoryReplay
+
+    torch.manual_seed(cfg.seed)
+    dqn = DQNLearner(spec, n_actions, cfg.network, cfg.learner, resolve_device(cfg.learner.device),
+                     max_priority=cfg.replay.max_priority)
+    rng = np.random.default_rng(seed)
+    first = poisoned_chunk(rng, 4 * CHUNK, fraction, value)
+    rb = InMemoryReplay(spec_of_batch(first), capacity=cfg.replay.capacity, alpha=cfg.replay.alpha, seed=seed)
+    while rb.size < cfg.replay.capacity:
+        rb.insert(poisoned_chunk(rng, 4 * CHUNK, fraction, value))
+
+    def step(_n: int) -> None:
+        rb.insert(poisoned_chunk(rng, CHUNK, fraction, value))
+        s = rb.sample(BATCH, dqn.beta(), rng)
+        _, prios = dqn.update(dqn.batch_to_tensors(s.data, s.weights))
+        bad = dqn.poisoned
+        if bad.size:
+            rb.remove(s.keys[bad])
+        if prios is not None:
+            keep = np.ones(BATCH, bool)
+            keep[bad] = False
+            rb.update_priorities(s.keys[keep], prios[keep])
+
+    return step, dqn
+
+
+def unchecked_update(dqn: Any) -> Callable[[Any], None]:
+    """The step with no check at all, for the cost of the checks: no observation screen, no |TD|
+    bound, no guard (forward, loss, backward, clip, optimizer step, priorities)."""
+    import torch
+
+    from zenrl.common.networks import rename_prefix, to_tensors
+    from zenrl.learner.dqn import double_dqn_target, dqn_loss
+
+    def run(pair: tuple[dict[str, np.ndarray], np.ndarray]) -> None:
+        data, w = pair
+        t = to_tensors({k: v for k, v in data.items() if k in ("action", "reward", "n", "terminated")}, dqn.device)
+        obs = to_tensors({k: data[k] for k in dqn.obs_spec}, dqn.device)
+        nxt = to_tensors(rename_prefix(data, "next_obs", "obs"), dqn.device)
+        weights = torch.from_numpy(np.array(w, np.float32))
+        with torch.no_grad():
+            y = double_dqn_target(dqn.online(nxt), dqn.target(nxt), t["reward"].float(), t["n"], t["terminated"],
+                                  dqn.cfg.gamma)
+        loss, td_abs, q_sa = dqn_loss(dqn.online(obs), t["action"], y, weights, dqn.cfg.huber_delta)
+        dqn.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_(dqn.online.parameters(), dqn.cfg.grad_clip)
+        float(loss.item()), float(norm.item()), float(q_sa.mean().item())
+        dqn.opt.step()
+        td_abs.numpy().astype(np.float32)
+
+    return run
+
+
+def poison_bench(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: float) -> dict[str, Any]:
+    """Issue #32 item 2, in this process, CPU time of this thread per step (rounds alternate):
+
+    * ``poison_ratio``: the learner loop (:func:`poison_loop`) with 1% of the inserted items at
+      float32's max in a velocity (left out by the observation screen), clean / poisoned
+      (target >= 0.9); ``poison_ratio_in_step``: the same without the screen, so that the step
+      itself must find and leave out the items (a second forward on the others);
+    * ``checks_overhead_ratio``: ``batch_to_tensors`` + ``update`` of the learner as it is /
+      the same learner with the observation screen, the |TD| bound and the guard turned off, on
+      clean batches (target <= 1.02); ``checks_overhead_ratio_vs_bare``: / the step written out
+      with no check and no bookkeeping at all (:func:`unchecked_update`);
+    * ``origins_overhead_ratio``: the replay's ingest of a chunk with / without the record of
+      who sent each item (target <= 1.05)."""
+    import torch
+
+    from zenrl.common import protocol as P
+    from zenrl.common.config import load_config
+    from zenrl.common.networks import resolve_device
+    from zenrl.learner.dqn import DQNLearner
+    from zenrl.replay.service import ReplayService
+
+    torch.set_num_threads(cfg.learner.torch_threads)
+    f32max = float(np.finfo(np.float32).max)
+    unscreened = cfg.model_copy(update={"learner": cfg.learner.model_copy(update={"max_abs_obs": 1e39})})
+    loops = {"clean": poison_loop(cfg, spec, n_actions, 0.0, 0.0, 5),
+             "poisoned": poison_loop(cfg, spec, n_actions, POISON_FRACTION, f32max, 5),
+             "in_step": poison_loop(unscreened, spec, n_actions, POISON_FRACTION, f32max, 5)}
+    us = ab_cpu_us({k: v[0] for k, v in loops.items()}, rounds, round_s)
+    out: dict[str, Any] = {
+        "poison_ratio": round(us["clean"] / us["poisoned"], 4),
+        "poison_ratio_in_step": round(us["clean"] / us["in_step"], 4),
+        "poison_step_us": {k: round(v, 1) for k, v in us.items()},
+        "poisoned_items": {k: v[1].poisoned_total for k, v in loops.items()},
+        "repaired_updates": {k: v[1].repaired_updates for k, v in loops.items()},
+        "skipped_updates": {k: v[1].guard.skipped for k, v in loops.items()},
+        "updates": {k: v[1].updates for k, v in loops.items()},
+        "poison_fraction": POISON_FRACTION, "target_poison_ratio": POISON_TARGET,
+    }
+    # the checks' cost per update, on clean batches
+    torch.manual_seed(cfg.seed)
+    dev = resolve_device(cfg.learner.device)
+    checked = DQNLearner(spec, n_actions, cfg.network, cfg.learner, dev, max_priority=cfg.replay.max_priority)
+    off = DQNLearner(spec, n_actions, cfg.network, cfg.learner, dev)  # no |TD| bound
+    off.screen = lambda data, w, _fields: (data, w, {"_rows": None, "_screened": np.zeros(0, np.int64), "_n": len(w)})
+    off.guard.accept = lambda _loss, _norm: True
+    bare_step = unchecked_update(DQNLearner(spec, n_actions, cfg.network, cfg.learner, dev))
+    rng = np.random.default_rng(3)
+    pairs = [(poisoned_chunk(rng, BATCH, 0.0, 0.0), (rng.random(BATCH) * 0.9 + 0.1).astype(np.float32)) for _ in range(8)]
+    us = ab_cpu_us({"checked": lambda n: checked.update(checked.batch_to_tensors(*pairs[n % 8])),
+                    "off": lambda n: off.update(off.batch_to_tensors(*pairs[n % 8])),
+                    "bare": lambda n: bare_step(pairs[n % 8])}, rounds * 2, round_s)
+    out.update({"checks_overhead_ratio": round(us["checked"] / us["off"], 4),
+                "checks_overhead_ratio_vs_bare": round(us["checked"] / us["bare"], 4),
+                "update_us_checked": round(us["checked"], 1), "update_us_checks_off": round(us["off"], 1),
+                "update_us_bare": round(us["bare"], 1), "target_checks_overhead_ratio": CHECKS_TARGET})
+    # the replay's record of who sent each item, per chunk of 256
+    rcfg = load_config(CONFIG, ["replay.capacity=100000", "replay.min_size=1"], environ={})
+    svcs = {True: ReplayService(rcfg, None, "bench"), False: ReplayService(rcfg, None, "bench")}
+    svcs[False].ingestor.origins = None
+    payloads = [P.TransitionBatch("a0", 0, i, {k: v for k, v in poisoned_chunk(rng, 256, 0.0, 0.0).items()
+                                               if k != "meta/policy_version"}).encode() for i in range(16)]
+    us = ab_cpu_us({k: (lambda n, svc=svc: svc.ingest(payloads[n % 16], "zenrl/bench/transitions/a0"))
+                    for k, svc in svcs.items()}, rounds * 2, round_s)
+    out.update({"origins_overhead_ratio": round(us[True] / us[False], 4), "ingest_us_per_chunk": round(us[True], 1),
+                "ingest_us_per_chunk_without_origins": round(us[False], 1), "target_origins_overhead_ratio": ORIGINS_TARGET})
+    return out
+
+
 def make_service(cfg: Any, node: Any, run: str, name: str) -> Any:
     from zenrl.learner.apex import ApexLearner
 
@@ -279,6 +428,17 @@ def orchestrate(args: argparse.Namespace) -> int:
     cfg = load_config(CONFIG, [f"learner.batch_size={BATCH}", f"transport.router={ep}", f"run_id={run}",
                                f"runs_dir={tmp / 'runs'}", "learner.log_interval_s=1.0", "learner.device=cpu", *args.set])
     out: dict[str, Any] = {"bench": "learner_throughput", "quick": bool(args.quick), "error": None}
+    if args.poison:
+        out["mode"] = "poison"
+        try:
+            spec, n_actions = env_shapes(cfg)
+            out.update(poison_bench(cfg, spec, n_actions, 2 if args.quick else 4, 3.0))
+            log(f"poison: ratio {out['poison_ratio']} (screened), {out['poison_ratio_in_step']} (in the step); "
+                f"checks {out['checks_overhead_ratio']}; origins {out['origins_overhead_ratio']}")
+            out.update({"batch_size": BATCH, "chunk": CHUNK, "torch": torch.__version__, **machine_info(t_start)})
+        except BaseException as e:
+            record_error(out, e)
+        return emit(out)
     if args.guard_only:
         out["mode"] = "guard_only"
         try:
@@ -359,6 +519,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="one short round")
     ap.add_argument("--profile", action="store_true", help="profile the learner even if it meets the target")
     ap.add_argument("--guard-only", action="store_true", help="only the learner guard's cost per update, in process (~35 s)")
+    ap.add_argument("--poison", action="store_true",
+                    help="issue #32 item 2: the learner loop with 1%% in-bounds poison vs none, the checks' cost (~2 min)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override (repeatable), e.g. --set learner.requests_in_flight=8")
     args = ap.parse_args(argv)

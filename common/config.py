@@ -82,8 +82,8 @@ class ReplayConfig(_Section):
     drop_after_s: float = Field(2.0, gt=0, lt=5, description="A chunk waiting this long for a full ingest queue is dropped and counted (stays below Zenoh's 5 s BLOCK fuse).")
     check_semantics: bool = Field(True, description="Check each chunk's meaning against the run's env spec (actions in range, n in 1..actor.n_step, observation dtypes and finite Box bounds, reward and priority bounds); a chunk that fails is rejected and counted by reason and source.")
     check_obs_bounds: bool = Field(True, description="With check_semantics: also check observations against the env's finite Box bounds (turn off for an env whose observations leave its declared bounds).")
-    max_abs_reward: float = Field(1e6, gt=0, description="With check_semantics: a chunk with an (n-step) reward whose magnitude exceeds this is rejected.")
-    max_priority: float = Field(1e9, gt=0, description="With check_semantics: a chunk with an initial priority above this is rejected.")
+    max_abs_reward: float = Field(1e3, gt=0, description="With check_semantics: a chunk with an (n-step) reward whose magnitude exceeds this is rejected. The default is far above every shipped env's n-step sums (CartPole and Pong 1 per step, BurgerWar's +-5 win bonus and small marker gains, times n_step <= 5): it bounds what a sender can make the targets do, not honest play; raise it for an env with larger rewards.")
+    max_priority: float = Field(1e6, gt=0, description="With check_semantics: a chunk with an initial priority above this is rejected, and so is a learner priority update; the learner clips its priorities to it and blames an item whose |TD| exceeds it when a step is non-finite. With |n-step reward| <= max_abs_reward, |Q| <= max_abs_reward / (1 - gamma), so an honest |TD| stays under 2 * max_abs_reward / (1 - gamma) = 2e5 at the defaults and gamma 0.99 (R2D2's rescaled TD is far smaller); beyond that it measures nothing.")
     quarantine_rejections: int = Field(20, ge=0, description="A source (the actor id in the key) with this many rejected chunks within quarantine_window_s has its traffic dropped for quarantine_s; 0 turns quarantine off.")
     quarantine_window_s: float = Field(10.0, gt=0, description="Window over which a source's rejected chunks are counted for quarantine.")
     quarantine_s: float = Field(60.0, gt=0, description="How long a quarantined source's chunks are dropped unread.")
@@ -138,6 +138,7 @@ class LearnerConfig(_Section):
 
     guard_max_bad_updates: int = Field(10, ge=1, description="Non-finite loss or gradients skip the update; after this many skipped in a row the learner rolls back to its last good checkpoint (or to the last good parameters it published).")
     guard_log_interval_s: float = Field(10.0, gt=0, description="Skipped updates are logged at most once per this many seconds (with a count).")
+    max_abs_obs: float = Field(1e6, gt=0, description="Ape-X/R2D2: a sampled item with a floating-point observation of larger magnitude is left out of the step and reported to the replay as poisoned (it removes the item and charges its sender). An env's Box may allow such values (CartPole's velocity bounds are float32's max) but they make the network's float32 forward overflow; the default is far above every shipped env's observations.")
     @model_validator(mode="after")
     def _check(self) -> "LearnerConfig":
         if self.batch_size * self.batches_per_request > MAX_SAMPLE_BATCH:
@@ -185,7 +186,7 @@ class ImpalaConfig(_Section):
     queue_max_bytes: int = Field(256 * 1024 * 1024, ge=1024, description="Decoded bytes the learner's queue holds at most.")
     broadcast_every: int = Field(1, ge=1, description="Broadcast weights every K updates.")
     max_grad_norm: float = Field(40.0, gt=0, description="Clip the gradient norm of each update to this (IMPALA used 40).")
-    max_abs_reward: float = Field(1e6, gt=0, description="An unroll with a reward whose magnitude exceeds this is rejected and counted.")
+    max_abs_reward: float = Field(1e3, gt=0, description="An unroll with a reward whose magnitude exceeds this is rejected and counted. The default is far above every shipped env's per-step reward (CartPole and Pong 1, BurgerWar's +-5 win bonus): it bounds what a sender can make the value targets do, not honest play; raise it for an env with larger rewards.")
     check_obs_bounds: bool = Field(True, description="Reject unrolls whose observations leave the env's finite Box bounds (turn off for an env whose observations leave its declared bounds).")
     quarantine_rejections: int = Field(20, ge=0, description="An actor with this many rejected unrolls within quarantine_window_s has its unrolls dropped unread for quarantine_s; 0 turns quarantine off.")
     quarantine_window_s: float = Field(10.0, gt=0, description="Window over which an actor's rejected unrolls are counted for quarantine.")

@@ -622,17 +622,30 @@ class SampleReply(Message):
 
 @dataclass(frozen=True)
 class PriorityUpdate(Message):
-    """Learner -> replay: new priorities (|TD error|) for sampled keys. int64[K], float32[K]."""
+    """Learner -> replay: new priorities (|TD error|) for sampled keys, int64[K] and float32[K];
+    optional ``poisoned`` int64[P]: keys of sampled items that made the learner's loss or
+    gradient non-finite (the replay stops sampling them and charges their source). Keys are
+    >= 0 (the replay issues no other)."""
 
     TYPE: ClassVar[str] = "priorities"
-    SCHEMA: ClassVar[dict[str, str]] = {"keys": "array", "priorities": "array"}
+    SCHEMA: ClassVar[dict[str, str]] = {"keys": "array", "priorities": "array", "poisoned": "array?"}
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"poisoned"})
     keys: np.ndarray
     priorities: np.ndarray
+    poisoned: np.ndarray | None = None
 
     def _validate(self) -> None:
         _require_1d("keys", self.keys, "i")
         _require_1d("priorities", self.priorities, "f", self.keys.shape[0])
         _require_finite("priorities", self.priorities, nonneg=True)
+        if self.keys.size and int(self.keys.min()) < 0:
+            raise ProtocolError("keys", f"contains {int(self.keys.min())}; replay keys are >= 0", "negative")
+        if self.poisoned is not None:
+            _require_1d("poisoned", self.poisoned, "i")
+            if self.poisoned.shape[0] > MAX_SAMPLE_BATCH:
+                raise ProtocolError("poisoned", f"names {self.poisoned.shape[0]} keys, more than {MAX_SAMPLE_BATCH}", "size")
+            if self.poisoned.size and int(self.poisoned.min()) < 0:
+                raise ProtocolError("poisoned", f"contains {int(self.poisoned.min())}; replay keys are >= 0", "negative")
 
 
 @dataclass(frozen=True)

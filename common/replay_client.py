@@ -124,14 +124,20 @@ class ZenohReplayClient:
     def backlog(self) -> int:
         return len(self._backlog)
 
-    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
-        """Publish new priorities (keys int64[B], priorities float32[B]) as one
-        :class:`PriorityUpdate`: the one way priorities reach the replay (the learner calls it
-        from its sender's thread, with the priorities of several batches merged)."""
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray, poisoned: np.ndarray | None = None) -> None:
+        """Publish new priorities (keys int64[B], priorities float32[B]) and the keys of items
+        found poisonous (int64[P] or None: the replay stops sampling them, see
+        :class:`~zenrl.common.protocol.PriorityUpdate`) as one message: the one way priorities
+        reach the replay (the learner calls it from its sender's thread, with the priorities of
+        several batches merged)."""
         if self._prio is None:
             self._prio = self.node.publisher(self.keys.priorities)
-        self._prio.put(P.PriorityUpdate(keys=np.asarray(keys, np.int64),
-                                        priorities=np.asarray(priorities, np.float32)).encode(self.max_bytes))
+        bad = np.zeros(0, np.int64) if poisoned is None else np.asarray(poisoned, np.int64)
+        k, p = np.asarray(keys, np.int64), np.asarray(priorities, np.float32)
+        for i in range(0, max(1, bad.shape[0]), P.MAX_SAMPLE_BATCH):  # the message's cap on poisoned keys
+            part = bad[i:i + P.MAX_SAMPLE_BATCH]
+            self._prio.put(P.PriorityUpdate(keys=k, priorities=p, poisoned=part if part.size else None).encode(self.max_bytes))
+            k, p = k[:0], p[:0]
 
     def request_payload(self, batch_size: int, beta: float) -> bytes:
         return P.SampleRequest(request_id=next(self._req), batch_size=int(batch_size), beta=float(beta)).encode()

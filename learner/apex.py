@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from zenrl.common import protocol as P
 from zenrl.common.checkpoints import ApexTrainingState
 from zenrl.common.config import RunConfig
@@ -49,7 +51,8 @@ class ApexLearner(LearnerBase):
 
     def make_core(self) -> DQNLearner:
         """The learning step this learner drives (R2D2 gives its recurrent one)."""
-        return DQNLearner(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.device)
+        return DQNLearner(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.device,
+                          max_priority=self.cfg.replay.max_priority)
 
     @property
     def updates(self) -> int:
@@ -135,11 +138,20 @@ class ApexLearner(LearnerBase):
         if s is None:
             return False
         m, prios = self.dqn.update(s.prepared)
+        bad = self.dqn.poisoned
         if prios is None:  # skipped by the guard (non-finite loss or gradient)
+            if bad.size:
+                self._sender.send_priorities(self.client.update_priorities, s.keys[:0], np.zeros(0, np.float32), s.keys[bad])
             if self.dqn.guard.rollback_due:
                 self.rollback()
             return False
-        self._sender.send_priorities(self.client.update_priorities, s.keys, prios)
+        if bad.size:  # left out of the step: the replay removes them and charges their sender
+            keep = np.ones(len(prios), bool)
+            keep[bad] = False
+            self._sender.send_priorities(self.client.update_priorities, s.keys[keep], prios[keep], s.keys[bad])
+            prios = prios[keep]
+        else:
+            self._sender.send_priorities(self.client.update_priorities, s.keys, prios)
         self.transitions_consumed += len(prios)
         self._upd_rate.add(1)
         self._tr_rate.add(len(prios))
@@ -165,7 +177,7 @@ class ApexLearner(LearnerBase):
                      "beta": self.dqn.beta(), "wait_fraction": self._wait_s / max(interval_s, 1e-9),
                      "transitions_consumed": self.transitions_consumed, "not_ready": pf.not_ready,
                      "sample_timeouts": pf.timeouts, "sample_errors": pf.errors,
-                     "send_dropped": sender.dropped, "send_failed": sender.failed, **self.dqn.guard.values()})
+                     "send_dropped": sender.dropped, "send_failed": sender.failed, **self.dqn.values()})
         line = None
         if self._n_acc:
             line = (f"updates {self.dqn.updates} v{self.version} loss {vals.get('loss', 0.0):.4f} q {vals.get('q_mean', 0.0):.3f} "

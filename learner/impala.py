@@ -31,6 +31,7 @@ hold where the training happens.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,10 @@ from zenrl.learner.sender import BackgroundSender
 from zenrl.learner.unroll_queue import UnrollQueue, batch_unrolls
 
 log = logging.getLogger(__name__)
+
+
+def _finite(loss: float, norm: float) -> bool:
+    return math.isfinite(loss) and math.isfinite(norm)
 
 #: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
 TOP_SOURCES = 20
@@ -98,6 +103,7 @@ class ImpalaLearner(LearnerBase):
         #: rejections by source, internal errors by type, the quarantine they feed (its lock)
         self.ledger = SourceLedger(self.quarantine, MAX_SOURCES)
         self.dropped_quarantined = 0
+        self.poisoned_unrolls = 0  #: unrolls left out of a step because their own step is non-finite
         self.updates = 0
         self.version = 0
         self.env_steps_trained = 0
@@ -241,12 +247,18 @@ class ImpalaLearner(LearnerBase):
         unrolls = self.queue.take(icfg.batch_unrolls, timeout_s)
         if unrolls is None:
             return False
+        refused: list[tuple[float, float]] = []
         batch = batch_unrolls(unrolls, self.device)
-        stats = learner_step(self.net, self.opt, batch, self.loss_params, icfg.max_grad_norm, self.guard.accept)
-        if stats is None:  # skipped by the guard (non-finite loss or gradient)
-            if self.guard.rollback_due:
-                self.rollback()
-            return False
+        stats = learner_step(self.net, self.opt, batch, self.loss_params, icfg.max_grad_norm,
+                             lambda loss, norm: _finite(loss, norm) or bool(refused.append((loss, norm))))
+        if stats is None:  # non-finite loss or gradient: step on the unrolls not to blame, if any
+            batch, stats = self._without_poison(unrolls, refused[0])
+            if stats is None:
+                if self.guard.rollback_due:
+                    self.rollback()
+                return False
+        else:
+            self.guard.accept(stats["loss"], stats["grad_norm"])  # finite: resets the run of skips
         self.updates += 1
         T, B = batch.shape
         self.env_steps_trained += T * B
@@ -264,6 +276,39 @@ class ImpalaLearner(LearnerBase):
                 if self._sender is not None:
                     self._sender.send(self._w_pub, w)
         return True
+
+    def _without_poison(self, unrolls: list[Any], refused: tuple[float, float]) -> tuple[Any, dict[str, float] | None]:
+        """After a refused step: the unrolls whose step alone is non-finite (found by bisection,
+        no optimizer step) are charged to their senders (``poison``: an unroll inside every
+        bound whose values the network cannot take) and the step is made on the others.
+        Returns (batch, stats), stats None when the step was skipped (also when every unroll or
+        none is to blame: the learner's problem, counted by the guard)."""
+        bad = self._culprits(unrolls)
+        if not bad or len(bad) == len(unrolls):
+            self.guard.accept(*refused)
+            return None, None
+        for u in bad:
+            self.poisoned_unrolls += 1
+            self.reject("poison", "the unroll makes the learner's loss or gradient non-finite; left out of the step",
+                        u.actor_id)
+        keep = [u for u in unrolls if not any(u is b for b in bad)]
+        batch = batch_unrolls(keep, self.device)
+        return batch, learner_step(self.net, self.opt, batch, self.loss_params, self.cfg.impala.max_grad_norm,
+                                   self.guard.accept)
+
+    def _culprits(self, unrolls: list[Any]) -> list[Any]:
+        """Within a set of unrolls whose step is non-finite, those whose step alone is."""
+        if len(unrolls) == 1:
+            return unrolls
+        h = len(unrolls) // 2
+        out: list[Any] = []
+        for part in (unrolls[:h], unrolls[h:]):
+            fin: list[bool] = []
+            learner_step(self.net, self.opt, batch_unrolls(part, self.device), self.loss_params,
+                         self.cfg.impala.max_grad_norm, lambda loss, norm: bool(fin.append(_finite(loss, norm))))
+            if not fin[0]:
+                out += self._culprits(part)
+        return out
 
     def _reset_interval(self) -> None:
         self._upd_rate, self._step_rate = RateMeter(), RateMeter()
@@ -283,7 +328,8 @@ class ImpalaLearner(LearnerBase):
             "env_steps_per_s": self._step_rate.rate(), "env_steps_trained": self.env_steps_trained,
             "policy_lag": self._lag_sum / n, "queue_len": len(self.queue), "queue_bytes": self.queue.nbytes,
             "stale_dropped": q["stale_dropped"], "dropped_quarantined": self.dropped_quarantined,
-            "send_dropped": self._sender.dropped if self._sender is not None else 0, **self.guard.values()})
+            "send_dropped": self._sender.dropped if self._sender is not None else 0,
+                     "poisoned_unrolls": self.poisoned_unrolls, **self.guard.values()})
         vals.update({f"queue_{k}": q[k] for k in QUEUE_COUNTERS})
         vals.update(self.rejects.as_values())
         vals.update(self.ledger.values(TOP_SOURCES, expire=True))

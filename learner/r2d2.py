@@ -23,6 +23,7 @@ Batch layout (item-major, B sequences of m steps; see :mod:`zenrl.learner.r2d2_l
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any, Mapping
 
 import numpy as np
@@ -34,7 +35,7 @@ from zenrl.common.networks import to_tensors
 from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.apex import ApexLearner
-from zenrl.learner.dqn import DQNLearner
+from zenrl.learner.dqn import DQNLearner, LossTerms
 from zenrl.learner.r2d2_loss import r2d2_loss
 
 log = logging.getLogger(__name__)
@@ -50,33 +51,38 @@ class R2D2Core(DQNLearner):
     ``opt``, ``updates``, ``guard``)."""
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig, cfg: LearnerConfig,
-                 rcfg: R2D2Config, device: torch.device) -> None:
+                 rcfg: R2D2Config, device: torch.device, max_priority: float = math.inf) -> None:
         super().__init__(spec, n_actions, net_cfg, cfg, device,
-                         network=lambda obs, n, nc: RecurrentQNetwork(obs, n, nc, rcfg.lstm_size))
+                         network=lambda obs, n, nc: RecurrentQNetwork(obs, n, nc, rcfg.lstm_size),
+                         max_priority=max_priority)
         self.rcfg = rcfg
 
     def batch_to_tensors(self, data: Mapping[str, np.ndarray], weights: np.ndarray) -> dict[str, Any]:
-        """Tensors for :meth:`update` (:meth:`check_actions` first)."""
+        """Tensors for :meth:`update` (:meth:`check_actions` first, then :meth:`screen`)."""
         self.check_actions(data["action"])
+        data, weights, book = self.screen(data, weights, list(self.obs_spec))
         t = to_tensors({k: data[k] for k in (*self.obs_spec, *BATCH_FIELDS)}, self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
+        t.update(book)
         return t
 
-    def update(self, b: Mapping[str, Any]) -> tuple[dict[str, float], np.ndarray | None]:
-        """One step on a batch from :meth:`batch_to_tensors`; returns (metrics, new priorities
-        float32[B], the mixed priority of each sequence). A non-finite loss or gradient skips
-        the step (see :attr:`guard`): metrics are then empty and priorities ``None``."""
+    def loss_terms(self, b: Mapping[str, Any]) -> LossTerms:
+        """The R2D2 loss (:func:`~zenrl.learner.r2d2_loss.r2d2_loss`) of a batch from
+        :meth:`batch_to_tensors`; priorities float[B] are the mixed sequence priorities. A
+        sequence is blamed for a refused step when its TD errors (over every step: a non-finite
+        value anywhere in its unroll reaches them through the recurrent state) are non-finite or
+        above ``max_priority``."""
         r = self.rcfg
         res = r2d2_loss(self.online, self.target, b, burn_in=r.burn_in, n_step=r.n_step, gamma=self.cfg.gamma,
                         eps=r.value_rescale_eps, eta=r.eta, train_episode_starts=r.train_episode_starts)
-        stepped = self.optimize(res.loss)
-        if stepped is None:
-            return {}, None
-        loss_v, norm_v = stepped
-        metrics = {"loss": loss_v, "q_mean": res.q_mean, "grad_norm": norm_v,
-                   "trained_steps": float(res.trained.sum().item())}
-        return metrics, res.priorities.detach().cpu().numpy().astype(np.float32)
 
+        def metrics() -> dict[str, float]:
+            return {"q_mean": res.q_mean, "trained_steps": float(res.trained.sum().item())}
+
+        def bad() -> torch.Tensor:
+            return ~(res.td.abs() <= self.max_priority).all(1) | ~torch.isfinite(res.priorities)
+
+        return LossTerms(res.loss, res.priorities.detach(), metrics, bad, self._over(res.td.abs()))
 
 class R2D2Learner(ApexLearner):
     """The R2D2 learner as a :class:`~zenrl.common.roles.Worker` (see the module docstring)."""
@@ -88,7 +94,8 @@ class R2D2Learner(ApexLearner):
         super().__init__(cfg, node, run_id, resume, learner_id)  # transitions_consumed counts sequences here
 
     def make_core(self) -> R2D2Core:
-        return R2D2Core(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.cfg.r2d2, self.device)
+        return R2D2Core(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.cfg.r2d2, self.device,
+                        self.cfg.replay.max_priority)
 
     def training_state(self) -> R2D2TrainingState:
         return R2D2TrainingState(**self.base_fields(self.version), learner=self.dqn.state_dict(),

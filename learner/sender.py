@@ -64,11 +64,12 @@ class BackgroundSender:
     def send(self, publisher: Any, payload: bytes) -> None:
         self._queue(publisher, payload)
 
-    def send_priorities(self, update: Callable[[np.ndarray, np.ndarray], Any], keys: np.ndarray,
-                        priorities: np.ndarray) -> None:
+    def send_priorities(self, update: Callable[..., Any], keys: np.ndarray, priorities: np.ndarray,
+                        poisoned: np.ndarray | None = None) -> None:
         """keys int64[B], priorities float32[B] (held by reference: do not modify them), for
-        ``update(keys, priorities)`` on the sender's thread."""
-        self._queue(update, (keys, priorities))
+        ``update(keys, priorities)`` on the sender's thread; ``poisoned`` int64[P]: keys the
+        learner found poisonous, then sent as ``update(keys, priorities, poisoned)``."""
+        self._queue(update, (keys, priorities, poisoned))
 
     def _unit(self) -> None:
         """One wake-up: wait for the first item, linger, send everything queued."""
@@ -96,15 +97,19 @@ class BackgroundSender:
                 continue
             parts = merged.get(target)
             if parts is None:
-                parts = merged[target] = ([], [])
+                parts = merged[target] = ([], [], [])
                 out.append((target, parts))
             parts[0].append(item[0])
             parts[1].append(item[1])
+            if item[2] is not None and len(item[2]):
+                parts[2].append(item[2])
         first_error: Exception | None = None
         for target, item in out:
             try:
                 if isinstance(item, bytes):
                     target.put(item)
+                elif item[2]:
+                    target(np.concatenate(item[0]), np.concatenate(item[1]), np.concatenate(item[2]))
                 else:
                     target(np.concatenate(item[0]), np.concatenate(item[1]))
                 self.sent += 1

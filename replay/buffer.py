@@ -8,7 +8,16 @@ is recognised (the slot holds a different key) and ignored.
 
 Priorities: a raw priority ``p >= 0`` (typically ``|TD error|``) is stored in the sum tree as
 ``(p + eps) ** alpha``; sampling probability ``P(i) = (p_i + eps)^alpha / sum_k (p_k + eps)^alpha``.
-New items without an explicit priority get the running maximum raw priority (initially 1.0).
+New items without an explicit priority get :attr:`InMemoryReplay.max_priority`: a high quantile
+(``recent_quantile``, 0.99) of the last ``recent_window`` (4096) priorities the learner set through
+:meth:`InMemoryReplay.update_priorities` (1.0 before any). Priorities that come with inserted items
+(an actor's own estimate) do not move it, and one key counts once per update it is named in: a
+single chunk, however high its priorities, cannot pin the priority every later item gets (a
+plain running max could be pinned forever by one value).
+
+Removed items (:meth:`InMemoryReplay.remove`: the learner found them poisonous) keep their slot
+until it is overwritten but are never sampled again (sum-tree leaf 0, or skipped in uniform mode)
+and later priority updates for them are ignored.
 
 Importance-sampling weights ``w_i = (N * P(i)) ** -beta`` are normalised by the **largest
 weight in the sampled batch** (i.e. by the smallest sampled probability), as many Ape-X
@@ -112,6 +121,8 @@ class InMemoryReplay:
         eps: added to every raw priority before the exponent, so zero-error items stay
             sampleable.
         seed: seed of the internal generator used when ``sample`` gets no ``rng``.
+        recent_window: how many of the latest learner priorities :attr:`max_priority` is taken from.
+        recent_quantile: which quantile of them it is (1.0: their max).
     """
 
     def __init__(
@@ -123,6 +134,8 @@ class InMemoryReplay:
         uniform: bool = False,
         eps: float = 1e-6,
         seed: int | None = None,
+        recent_window: int = 4096,
+        recent_quantile: float = 0.99,
     ) -> None:
         if not isinstance(spec, Mapping) or len(spec) == 0:
             raise ValueError(f"spec must be a non-empty mapping of field -> ArraySpec, got {spec!r}")
@@ -164,8 +177,15 @@ class InMemoryReplay:
         self._tree: SumTree | None = None if self._uniform else SumTree(eff)
         self._inserts_total = 0
         self._size = 0
+        self._recent = np.ones(_check_int("recent_window", recent_window, 1), dtype=np.float64)
+        self._recent_n = 0  # priorities written to the ring so far
+        self._quantile = _check_float("recent_quantile", recent_quantile, 0.0, 1.0)
         self._max_priority = 1.0
+        self._max_dirty = False
+        #: True for a slot whose item was removed (never sampled, its priority updates ignored)
+        self._removed = np.zeros(eff, dtype=bool)
         self.stale_updates = 0
+        self.removed_total = 0
         self._rng = np.random.default_rng(seed)
         logger.debug(
             "InMemoryReplay: capacity=%d (requested %d), %d B/item, alpha=%s, uniform=%s",
@@ -203,7 +223,14 @@ class InMemoryReplay:
 
     @property
     def max_priority(self) -> float:
-        """Running maximum of raw priorities seen (initially 1.0)."""
+        """The raw priority new items without one get: the ``recent_quantile`` of the last
+        ``recent_window`` priorities set by :meth:`update_priorities` (1.0 before any)."""
+        if self._max_dirty:
+            n = min(self._recent_n, self._recent.shape[0])
+            r = self._recent[:n]
+            k = min(n - 1, int(math.ceil(self._quantile * n)) - 1) if n else 0
+            self._max_priority = float(np.partition(r, k)[k]) if n else 1.0
+            self._max_dirty = False
         return self._max_priority
 
     @property
@@ -289,13 +316,12 @@ class InMemoryReplay:
         if n2:
             self._keys[:n2] = stored_keys[n1:]
 
-        if p is not None:
-            pmax = float(p.max())
-            if pmax > self._max_priority:
-                self._max_priority = pmax
+        self._removed[s0 : s0 + n1] = False
+        if n2:
+            self._removed[:n2] = False
         if self._tree is not None:
             if p is None:
-                leaf = np.full(m, self._leaf_value(self._max_priority), dtype=np.float64)
+                leaf = np.full(m, self._leaf_value(self.max_priority), dtype=np.float64)
             else:
                 leaf = self._leaf_values(p[skip:])
             self._tree.set_range(s0, leaf[:n1])
@@ -365,6 +391,7 @@ class InMemoryReplay:
         slots = k % self._capacity
         present = self._keys.take(slots) == k
         present &= k >= 0  # empty slots hold -1
+        present &= ~self._removed.take(slots)  # a removed item stays removed
         applied = int(np.count_nonzero(present))
         stale = k.shape[0] - applied
         if stale:
@@ -372,12 +399,61 @@ class InMemoryReplay:
             slots = slots[present]
             p = p[present]
         if applied:
-            pmax = float(p.max())
-            if pmax > self._max_priority:
-                self._max_priority = pmax
+            self._remember(p)
             if self._tree is not None:
                 self._tree.update(slots, self._leaf_values(p), check=False)
         return applied
+
+    def _remember(self, p: np.ndarray) -> None:
+        """Put applied learner priorities in the ring :attr:`max_priority` is taken from."""
+        w = self._recent.shape[0]
+        if p.shape[0] >= w:
+            p = p[-w:]
+        i = self._recent_n % w
+        n1 = min(p.shape[0], w - i)
+        self._recent[i : i + n1] = p[:n1]
+        self._recent[: p.shape[0] - n1] = p[n1:]
+        self._recent_n += p.shape[0]
+        self._max_dirty = True
+
+    def remove(self, keys: np.ndarray) -> np.ndarray:
+        """Never sample the items named by ``keys`` again (the learner found them poisonous): their
+        leaf is set to 0 (in uniform mode sampling skips them) and later priority updates for them
+        are ignored; they leave the buffer when the ring overwrites their slot.
+
+        Args:
+            keys: ``int64[K]`` keys from ``sample`` (duplicates allowed).
+
+        Returns:
+            ``bool[K]``: which entries named an item stored (and not yet removed) at the call;
+            the others (evicted, never issued, already removed) changed nothing.
+        """
+        k = np.asarray(keys)
+        if k.dtype.kind not in "iu" or k.ndim != 1:
+            raise ValueError(f"keys must be a 1-D integer array, got {k.dtype}{list(k.shape)}")
+        k = k.astype(np.int64, copy=False)
+        hit = np.zeros(k.shape[0], dtype=bool)
+        if not k.shape[0]:
+            return hit
+        slots = k % self._capacity
+        hit = (k >= 0) & (self._keys.take(slots) == k) & ~self._removed.take(slots)
+        # a key named twice counts once
+        _, first = np.unique(k, return_index=True)
+        once = np.zeros(k.shape[0], dtype=bool)
+        once[first] = True
+        hit &= once
+        s = slots[hit]
+        if s.shape[0]:
+            self._removed[s] = True
+            if self._tree is not None:
+                self._tree.update(s, np.zeros(s.shape[0]), check=False)
+            self.removed_total += int(s.shape[0])
+        return hit
+
+    @property
+    def removed_live(self) -> int:
+        """Removed items still holding a slot."""
+        return int(np.count_nonzero(self._removed))
 
     # ------------------------------------------------------------------ sampling
     def sample(
@@ -417,6 +493,8 @@ class InMemoryReplay:
         if self._tree is None:
             first = (self._inserts_total - n) % self._capacity  # oldest stored item's slot
             slots = (first + g.integers(0, n, size=b, dtype=np.int64)) % self._capacity
+            if self.removed_total:
+                slots = self._redraw_removed(slots, first, n, g)
             probs = np.full(b, 1.0 / n, dtype=np.float64)
             weights = np.ones(b, dtype=np.float32)
         else:
@@ -448,6 +526,18 @@ class InMemoryReplay:
                 data[name] = arr.take(slots, axis=0, out=out[name], mode="clip")
         return SampleBatch(keys=self._keys[slots], probabilities=probs, weights=weights, data=data)
 
+    def _redraw_removed(self, slots: np.ndarray, first: int, n: int, g: np.random.Generator) -> np.ndarray:
+        """Uniform mode: draw again the slots that hold removed items (uniform over the rest)."""
+        dead = self._removed.take(slots)
+        if not dead.any():
+            return slots
+        live = (first + np.flatnonzero(~self._removed.take((first + np.arange(n)) % self._capacity))) % self._capacity
+        if not live.shape[0]:
+            raise ReplayEmpty("cannot sample: every stored item was removed")
+        slots = slots.copy()
+        slots[dead] = live[g.integers(0, live.shape[0], size=int(dead.sum()))]
+        return slots
+
     def _check_out(self, out: Mapping[str, np.ndarray], b: int) -> None:
         if not isinstance(out, Mapping) or out.keys() != self._spec.keys():
             raise SpecMismatch(f"out must have exactly the spec's fields {sorted(self._spec)}")
@@ -472,7 +562,7 @@ class InMemoryReplay:
         out = np.full(k.shape[0], np.nan)
         present = (k >= 0) & (self._keys[k % self._capacity] == k)
         if self._tree is None:
-            out[present] = 1.0
+            out[present] = np.where(self._removed[k[present] % self._capacity], 0.0, 1.0)
         else:
             out[present] = self._tree.get(k[present] % self._capacity)
         return out
@@ -511,7 +601,9 @@ class InMemoryReplay:
             "eps": float(self._eps),
             "inserts_total": int(self._inserts_total),
             "size": int(n),
-            "max_priority": float(self._max_priority),
+            "max_priority": float(self.max_priority),
+            "recent": self._recent[: min(self._recent_n, self._recent.shape[0])].copy(),
+            "removed": self._removed[:n].copy(),
             "stale_updates": int(self.stale_updates),
             "keys": self._keys[:n].copy(),
             "leaves": (
@@ -581,5 +673,13 @@ class InMemoryReplay:
         self._inserts_total = inserts
         self._size = n
         self._max_priority = float(state["max_priority"])
+        self._max_dirty = False
+        recent = np.asarray(state.get("recent", np.zeros(0)), dtype=np.float64).reshape(-1)[-self._recent.shape[0]:]
+        self._recent[: recent.shape[0]] = recent
+        self._recent_n = recent.shape[0]
+        self._removed[:] = False
+        removed = state.get("removed")
+        if removed is not None:
+            self._removed[:n] = np.asarray(removed, dtype=bool).reshape(-1)[:n]
         self.stale_updates = int(state["stale_updates"])
         self._rng = np.random.Generator(bg)

@@ -418,6 +418,14 @@ class FrameReplay:
     def raw_priorities(self) -> tuple[np.ndarray, np.ndarray]:
         return self._inner.raw_priorities()
 
+    def remove(self, keys: np.ndarray) -> np.ndarray:
+        """:meth:`InMemoryReplay.remove` (the frames stay until their ring overwrites them)."""
+        return self._inner.remove(keys)
+
+    @property
+    def removed_total(self) -> int:
+        return self._inner.removed_total
+
     def priorities_of(self, keys: np.ndarray) -> np.ndarray:
         return self._inner.priorities_of(keys)
 

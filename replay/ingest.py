@@ -68,6 +68,9 @@ class Ingest:
         #: is never held while taking ``lock``
         self.ledger = SourceLedger(self.quarantine, MAX_SOURCES)
         self.inserted = RateMeter()
+        #: set by the service: records each stored chunk's sender (``Origins.record``), so that
+        #: items the learner reports poisonous are charged to it
+        self.origins: Any | None = None
         self.dropped_queue_full = 0
         self.dropped_stopping = 0
         self.dropped_quarantined = 0
@@ -220,6 +223,8 @@ class Ingest:
                 first = int(res.keys[0]) if res.keys.size else self.store.buffer.inserts_total
                 self.journal.append(first, int(res.keys.size), c.payload)
             n += int(res.keys.size)
+            if self.origins is not None:
+                self.origins.record(res.keys, c.sender, self.store.buffer.capacity)
         if self.journal is not None:
             self.journal.after_insert(self.store.buffer)
         return n

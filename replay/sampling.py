@@ -6,7 +6,10 @@
   ``replay.samples_per_insert`` not exceeded); otherwise "not ready" is answered at once with the
   reason, never by waiting.
 * ``replay/priorities`` (:class:`~zenrl.common.protocol.PriorityUpdate`): new priorities for
-  sampled keys; keys overwritten since are ignored by the storage.
+  sampled keys; keys overwritten since are ignored by the storage. Its ``poisoned`` keys (items
+  that made the learner's loss or gradient non-finite) are removed from sampling for good
+  (:meth:`~zenrl.replay.buffer.InMemoryReplay.remove`) and each is charged to the source that
+  sent it (:class:`Origins`) as a ``poison`` rejection, which feeds the quarantine.
 
 Both run on Zenoh's callback threads and take the replay's lock around the storage.
 """
@@ -26,13 +29,69 @@ from zenrl.common.metrics import RateMeter, RejectCounter
 log = logging.getLogger(__name__)
 
 
+#: the name charged for a poisoned item whose sender is not known (restored from the log, or
+#: past the name cap); not a valid actor id, so never an actor's quarantine
+UNKNOWN_SOURCE = "(unknown)"
+
+
+class Origins:
+    """Who sent each stored item: per slot (``key % capacity``) the key recorded and an index into
+    the sender names (at most ``max_names`` kept; later ones are :data:`UNKNOWN_SOURCE`). The
+    ingest records every stored chunk (:meth:`record`, one fancy assignment per chunk); sampling
+    looks the senders of poisoned keys up. Callers hold the replay's lock."""
+
+    def __init__(self, max_names: int = 10_000) -> None:
+        self.max_names = max_names
+        self._key: np.ndarray | None = None
+        self._src: np.ndarray | None = None
+        self._names: list[str] = []
+        self._ids: dict[str, int] = {}
+
+    def record(self, keys: np.ndarray, source: str, capacity: int) -> None:
+        """Items ``keys`` int64[K] (stored in a buffer of ``capacity`` slots) came from ``source``."""
+        if self._key is None or self._key.shape[0] != capacity:
+            self._key = np.full(capacity, -1, np.int64)
+            self._src = np.full(capacity, -1, np.int32)
+        sid = self._ids.get(source)
+        if sid is None:
+            sid = -1
+            if len(self._names) < self.max_names:
+                sid = self._ids[source] = len(self._names)
+                self._names.append(source)
+        n = keys.shape[0]
+        if n == 0:
+            return
+        s0 = int(keys[0]) % capacity
+        if n <= capacity and int(keys[-1]) - int(keys[0]) == n - 1:  # a chunk's keys are consecutive
+            n1 = min(n, capacity - s0)
+            self._key[s0:s0 + n1], self._src[s0:s0 + n1] = keys[:n1], sid
+            if n1 < n:
+                self._key[:n - n1], self._src[:n - n1] = keys[n1:], sid
+            return
+        slots = keys % capacity
+        self._key[slots] = keys
+        self._src[slots] = sid
+
+    def sources_of(self, keys: np.ndarray) -> list[str]:
+        """The sender of each of ``keys`` int64[K] (:data:`UNKNOWN_SOURCE` where not recorded)."""
+        if self._key is None:
+            return [UNKNOWN_SOURCE] * len(keys)
+        slots = keys % self._key.shape[0]
+        sid = np.where(self._key[slots] == keys, self._src[slots], -1)
+        return [self._names[i] if i >= 0 else UNKNOWN_SOURCE for i in sid.tolist()]
+
+
 class Sampler:
     """Sampling and priority updates over the storage ``buffer()`` returns (None before the
     first chunk). ``rejects`` counts bad requests with the replay's other rejections;
-    ``check_priorities``: refuse priority updates above ``replay.max_priority``."""
+    ``check_priorities``: refuse priority updates above ``replay.max_priority``. ``origins``:
+    who sent each stored item (the ingest records them); ``charge(reason, detail, source)``
+    counts a poisoned item against its source (the ingest's ``reject``: by reason, by source,
+    quarantine); without them poisoned items are still removed, and counted here only."""
 
     def __init__(self, rcfg: Any, seed: int, max_bytes: int, lock: threading.Lock, buffer: Callable[[], Any],
-                 rejects: RejectCounter, sample_key: str, check_priorities: bool) -> None:
+                 rejects: RejectCounter, sample_key: str, check_priorities: bool, origins: Origins | None = None,
+                 charge: Callable[[str, str, str], None] | None = None) -> None:
         self.rcfg, self.max_bytes, self.lock = rcfg, max_bytes, lock
         self.buffer = buffer
         self.rejects = rejects
@@ -42,6 +101,10 @@ class Sampler:
         self.sampled = RateMeter()
         self.sampled_items = 0
         self.not_ready_replies = 0
+        self.origins = origins
+        self.charge = charge
+        self.poison_removed = 0  #: poisoned items removed from sampling
+        self.poison_stale = 0  #: poisoned keys no longer stored (evicted, or removed already)
 
     def readiness(self, batch_size: int) -> str:
         """``""`` if a batch of ``batch_size`` may be sampled now, else the reason why not
@@ -91,11 +154,28 @@ class Sampler:
             self.rejects.reject("priority_bound", f"priority update {float(msg.priorities.max()):.3g} exceeds "
                                 f"replay.max_priority {self.rcfg.max_priority:.3g}", key)
             return
+        bad = msg.poisoned
+        sources: list[str] = []
         with self.lock:
             b = self.buffer()
             if b is not None:
-                b.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))
+                if bad is not None and bad.size:  # first: a removed item takes no priority after
+                    hit = b.remove(bad.astype(np.int64))
+                    bad = bad[hit]
+                    self.poison_removed += bad.shape[0]
+                    self.poison_stale += hit.shape[0] - bad.shape[0]
+                    sources = (self.origins.sources_of(bad.astype(np.int64)) if self.origins is not None
+                               else [UNKNOWN_SOURCE] * bad.shape[0])
+                if msg.keys.size:
+                    b.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))
+        for k, src in zip(bad.tolist() if sources else [], sources):
+            detail = f"item {k} made the learner's loss or gradient non-finite; removed from sampling"
+            if self.charge is not None:
+                self.charge("poison", detail, src)
+            else:
+                self.rejects.reject("poison", detail, src)
 
     def stats_values(self) -> dict[str, Any]:
         return {"sample_batches_per_s": self.sampled.rate(), "sample_batches_total": self.sampled.total,
-                "not_ready_replies": self.not_ready_replies}
+                "not_ready_replies": self.not_ready_replies, "poison_removed": self.poison_removed,
+                "poison_stale": self.poison_stale}

@@ -37,7 +37,7 @@ from zenrl.common.transport import Node
 from zenrl.replay.checks import Checker, ChunkChecker, SequenceChecker
 from zenrl.replay.ingest import Ingest
 from zenrl.replay.journal import Journal
-from zenrl.replay.sampling import Sampler
+from zenrl.replay.sampling import Origins, Sampler
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +64,9 @@ class ReplayService:
                                    rcfg.snapshot_interval_s, rcfg.durable_retry_s, rcfg.durable_backlog_bytes)
         checker = make_checker(cfg) if rcfg.check_semantics else None
         self.ingestor = Ingest(rcfg, cfg.seed, self.max_bytes, checker, self._lock, self.journal)
+        self.ingestor.origins = origins = Origins()
         self.sampler = Sampler(rcfg, cfg.seed, self.max_bytes, self._lock, lambda: self.buffer, self.ingestor.rejects,
-                               self.keys.sample, checker is not None)
+                               self.keys.sample, checker is not None, origins, self.ingestor.reject)
         self.restored_items = self.journal.restore(self.ingestor, self.max_bytes) if self.journal is not None else 0
         #: set by close(): the ingest thread drains the queue and ends
         self._stop = threading.Event()

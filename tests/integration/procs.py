@@ -116,6 +116,50 @@ def poison(args: argparse.Namespace) -> int:
     return 0
 
 
+def inbounds(args: argparse.Namespace) -> int:
+    """A hostile actor whose poison passes every check: CartPole chunks of 8 transitions, each
+    with a velocity at float32's max (inside CartPole's Box: its velocity bounds are float32's
+    max) in one of the observations, at ``--fraction`` of all the transitions the replay takes
+    in, its actor id ``inbounds<k>`` changed every 10 chunks, until SIGTERM or the replay goes
+    away. Prints ``INBOUNDS <chunks sent>``."""
+    import signal
+    import threading
+
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    keys = P.Keys(args.run)
+    rng = np.random.default_rng(args.seed)
+    big = float(np.finfo(np.float32).max)
+    b, sent = 8, 0
+    with Node(args.router, 30.0) as node:
+        latest = node.subscribe_latest(keys.stats("replay", "replay"))
+        honest = 0
+        seen_replay = False
+        while not stop.is_set():
+            raw = latest.wait(0.2)
+            if raw is not None:
+                seen_replay = True
+                honest = int(P.Stats.decode(raw).values.get("inserted_total", 0))
+            elif seen_replay and not node.alive_now(keys.alive_role("replay"), 1.0):
+                break  # the run is over
+            while sent * b < honest * args.fraction and not stop.is_set():
+                d = {"obs": rng.uniform(-0.2, 0.2, (b, 4)).astype(np.float32), "action": rng.integers(0, 2, b),
+                     "reward": np.ones(b, np.float32), "next_obs": rng.uniform(-0.2, 0.2, (b, 4)).astype(np.float32),
+                     "terminated": np.zeros(b, bool), "truncated": np.zeros(b, bool), "n": np.full(b, 5, np.uint8)}
+                for i in range(b):  # every field and sign in turn: cart or pole velocity, now or next
+                    k = (sent * b + i) % 8
+                    d["obs" if k < 4 else "next_obs"][i, 1 if k % 2 else 3] = big if k % 4 < 2 else -big
+                who = f"inbounds{sent // 10}"
+                node.put(keys.transitions(who), P.TransitionBatch(who, 0, sent, d).encode())
+                sent += 1
+    sys.stdout.write(f"INBOUNDS {sent}\n")
+    sys.stdout.flush()
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -137,8 +181,13 @@ def main() -> int:
     s.add_argument("--run", required=True)
     s.add_argument("--fraction", type=float, default=0.1)
     s.add_argument("--seed", type=int, default=1)
+    s = sub.add_parser("inbounds")
+    s.add_argument("--router", required=True)
+    s.add_argument("--run", required=True)
+    s.add_argument("--fraction", type=float, default=0.01)
+    s.add_argument("--seed", type=int, default=1)
     args = p.parse_args()
-    return {"publish": publish, "claim": claim, "poison": poison}[args.cmd](args)
+    return {"publish": publish, "claim": claim, "poison": poison, "inbounds": inbounds}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -144,7 +144,7 @@ def test_batch_larger_than_capacity_keeps_last_items():
     np.testing.assert_array_equal(s["data"]["action"][s["keys"] % 5], s["keys"] - 1)
     assert rb.update_priorities(keys[:7], np.ones(7)) == 0  # stale from the start
     assert rb.stale_updates == 7
-    assert rb.max_priority == 11.0
+    assert rb.max_priority == 1.0  # priorities that come with inserted items do not move it
 
 
 def test_empty_batch_is_noop():
@@ -213,17 +213,68 @@ def test_insert_rejects_bad_priorities(prio):
 
 
 # ---------------------------------------------------------------- priorities
-def test_new_items_get_running_max_priority():
+def test_new_items_get_the_recent_learner_max_priority():
     rb = InMemoryReplay(cartpole_spec(), 10, alpha=1.0, eps=0.0)
     k0 = rb.insert(cp_batch([0]))
     assert rb.priorities_of(k0)[0] == 1.0
     k1 = rb.insert(cp_batch([1, 2]), priorities=np.array([0.5, 3.0]))
     k2 = rb.insert(cp_batch([3]))
-    assert rb.max_priority == 3.0
-    np.testing.assert_array_equal(rb.priorities_of(np.concatenate([k1, k2])), [0.5, 3.0, 3.0])
+    assert rb.max_priority == 1.0  # an inserted chunk's own priorities do not move it
+    np.testing.assert_array_equal(rb.priorities_of(np.concatenate([k1, k2])), [0.5, 3.0, 1.0])
     assert rb.update_priorities(k0, np.array([7.0])) == 1
     assert rb.max_priority == 7.0
     assert rb.priorities_of(rb.insert(cp_batch([4])))[0] == 7.0
+
+
+def test_one_chunk_cannot_pin_the_new_item_priority():
+    """A chunk inserted at a huge priority leaves it alone; one huge learner priority among many
+    is outside the 0.99 quantile; a window of them moves it only while they are the latest."""
+    rb = InMemoryReplay(cartpole_spec(), 300, alpha=1.0, eps=0.0, recent_window=200, recent_quantile=0.99)
+    rb.insert(cp_batch(np.arange(64)), priorities=np.full(64, 1e9))
+    assert rb.max_priority == 1.0
+    honest = rb.insert(cp_batch(np.arange(199)))
+    rb.update_priorities(honest, np.linspace(0.5, 2.0, 199))
+    rb.update_priorities(np.array([0]), np.array([1e9]))  # the chunk's first item, sampled once
+    # ring: 199 honest values and 1e9; the 0.99 quantile of 200 is the 198th smallest, an honest one
+    expected = np.linspace(0.5, 2.0, 199)[197]
+    assert rb.max_priority == expected
+    assert rb.priorities_of(rb.insert(cp_batch([5])))[0] == expected
+    # a full window of huge values moves it, and it comes back once they are no longer the latest
+    rb.update_priorities(np.arange(64), np.full(64, 1e9))
+    rb.update_priorities(np.repeat(np.arange(64), 4)[:200], np.full(200, 1e9))
+    assert rb.max_priority == 1e9
+    rb.update_priorities(honest, np.full(199, 0.25))
+    rb.update_priorities(honest[:1], np.array([0.25]))
+    assert rb.max_priority == 0.25
+
+
+def test_removed_items_are_never_sampled_and_stay_removed():
+    rb = InMemoryReplay(cartpole_spec(), 8, alpha=1.0, eps=0.0)
+    keys = rb.insert(cp_batch(np.arange(8)), priorities=np.full(8, 1.0))
+    hit = rb.remove(np.array([2, 5, 5, 99, -1]))
+    np.testing.assert_array_equal(hit, [True, True, False, False, False])
+    assert rb.removed_total == 2 and rb.removed_live == 2 and rb._tree.total == 6.0
+    assert not rb.remove(np.array([2])).any()  # already removed
+    # a priority update that was in flight does not bring it back; the others apply
+    assert rb.update_priorities(np.array([2, 3]), np.array([9.0, 4.0])) == 1
+    np.testing.assert_array_equal(rb.priorities_of(keys[[2, 3, 5]]), [0.0, 4.0, 0.0])
+    assert rb.max_priority == 4.0  # the removed item's priority did not count either
+    s = rb.sample(512, 0.4, np.random.default_rng(0))
+    assert not np.isin(s.keys, [2, 5]).any()
+    # the ring overwrites the slot: the new item there is live
+    k = rb.insert(cp_batch([8, 9, 10]))
+    assert k[2] == 10 and rb.priorities_of(k[2:])[0] == 4.0 and rb.removed_live == 1
+
+
+def test_removed_items_are_skipped_in_uniform_mode():
+    rb = InMemoryReplay(cartpole_spec(), 8, uniform=True, seed=0)
+    rb.insert(cp_batch(np.arange(8)))
+    rb.remove(np.arange(7))
+    s = rb.sample(64, 0.4)
+    np.testing.assert_array_equal(s.keys, np.full(64, 7))
+    rb.remove(np.array([7]))
+    with pytest.raises(ReplayEmpty):
+        rb.sample(4, 0.4)
 
 
 def test_alpha_and_eps_applied_to_stored_priorities():
