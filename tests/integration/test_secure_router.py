@@ -289,3 +289,55 @@ def test_each_actor_login_publishes_only_as_itself_and_holds_only_its_slot(tmp_p
         for n in (replay, learner, a, b):
             n.close()
         router.close()
+
+
+def _zenrl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "zenrl.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _error_lines(stderr: str) -> list[str]:
+    return [ln for ln in stderr.splitlines() if ln.startswith("zenrl: error:")]
+
+
+def test_services_refuse_development_passwords_unless_allowed(tmp_path, procs):
+    """Every service whose login holds one of the repository's development passwords exits with
+    EXIT_CONFIG and one line naming the fix; --allow-dev-credentials lets it go on (to the next
+    step: here, a router that is not there). An actor refuses an id that is not its login's."""
+    from zenrl import EXIT_CONFIG
+    from zenrl.common.transport import Node
+
+    certs = gen_certs(tmp_path / "certs")
+    nowhere = f"tls/127.0.0.1:{free_port()}"
+    common = ("--config", "configs/cluster_cartpole.yaml", "--router", nowhere, "--set", "transport.connect_timeout_s=0")
+    for role, login in (("replay", "replay"), ("learner", "learner"), ("evaluator", "evaluator"),
+                        ("exporter", "monitor"), ("actor", "actor-0")):
+        cfg = client_config_file(login, certs, tmp_path)
+        r = _zenrl(role, *common, "--set", f"transport.client_config={cfg}")
+        lines = _error_lines(r.stderr)
+        assert r.returncode == EXIT_CONFIG and len(lines) == 1, (role, r.returncode, r.stderr[-2000:])
+        assert "development password" in lines[0] and "--allow-dev-credentials" in lines[0] \
+            and "zenrl credentials" in lines[0] and repr(login) in lines[0], lines[0]
+    # allowed: the replay goes on and fails only for want of a router
+    r = _zenrl("replay", *common, "--set", f"transport.client_config={client_config_file('replay', certs, tmp_path)}",
+               "--allow-dev-credentials")
+    assert r.returncode not in (0, EXIT_CONFIG) and "development password" not in r.stderr, r.stderr[-2000:]
+    assert "could not connect" in r.stderr, r.stderr[-2000:]
+    # an actor logged in as actor-0 cannot be actor-1, nor take slot 1
+    for flag in (("--id", "actor-1"), ("--slot", "1")):
+        r = _zenrl("actor", *common, "--set", f"transport.client_config={client_config_file('actor-0', certs, tmp_path)}",
+                   "--allow-dev-credentials", *flag)
+        lines = _error_lines(r.stderr)
+        assert r.returncode == EXIT_CONFIG and len(lines) == 1 and "'actor-0'" in lines[0], (flag, r.stderr[-2000:])
+
+    # the router: the committed users file holds development passwords
+    router_cfg = tmp_path / "router.json"
+    router_cfg.write_text(str(secure_router_config(nowhere, certs)))
+    r = _zenrl("router", "--router-config", str(router_cfg))
+    lines = _error_lines(r.stderr)
+    assert r.returncode == EXIT_CONFIG and len(lines) == 1, r.stderr[-2000:]
+    assert "development passwords" in lines[0] and "actor-0" in lines[0] and "--allow-dev-credentials" in lines[0]
+    procs.zenrl("router", ["router", "--router-config", str(router_cfg), "--allow-dev-credentials"])
+    Node(nowhere, 30.0, config_file=str(client_config_file("actor-0", certs, tmp_path))).close()
