@@ -153,7 +153,16 @@ def cmd_learner(args: argparse.Namespace) -> int:
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
+    from zenrl.identity import ACTOR_LOGINS_ENV, take_actor_login
     from zenrl.processes import actor_main
+
+    pool = args.logins or os.environ.get(ACTOR_LOGINS_ENV)
+    if pool:  # one login of the pool, held while this process lives: transport.client_config
+        try:
+            args.overrides.append(f"transport.client_config={take_actor_login(pool)}")
+        except ConfigError as e:
+            sys.stderr.write(f"zenrl: error: {e}\n")
+            return EXIT_CONFIG
 
     from zenrl.identity import bind_actor
 
@@ -211,7 +220,9 @@ def cmd_credentials(args: argparse.Namespace) -> int:
     from zenrl.identity import make_credentials
 
     setup_logging(args.log_level, "credentials")
-    out = make_credentials(args.templates, args.out, args.actors, ca=args.ca, dev=args.dev, force=args.force)
+    owner = tuple(int(x) for x in args.owner.split(":")) if args.owner else None
+    out = make_credentials(args.templates, args.out, args.actors, ca=args.ca, dev=args.dev, force=args.force,
+                           owner=owner)  # type: ignore[arg-type]
     sys.stdout.write(json.dumps(out) + "\n")
     return 0
 
@@ -405,6 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="actor id (default: actor-<host>-<pid>; in secured mode the login's, actor-<i>)")
     s.add_argument("--slot", type=int, default=None,
                    help="exploration slot (default: from config or the running system; in secured mode the login's, <i>)")
+    s.add_argument("--logins", metavar="DIR",
+                   help="secured mode: take the first free actor login (client-actor-<i>.json5) of DIR as "
+                        "transport.client_config (also $ZENRL_ACTOR_LOGINS; replicas of one template)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_actor)
 
@@ -443,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ca", default="/certs/ca.pem", help="CA certificate path written into the client configs")
     s.add_argument("--dev", action="store_true", help="the repository's development passwords instead of random ones")
     s.add_argument("--force", action="store_true", help="overwrite an existing set")
+    s.add_argument("--owner", metavar="UID:GID", help="owner of the files written (a root setup container)")
     s.add_argument("--log-level", default="WARNING")
     s.set_defaults(func=cmd_credentials)
 

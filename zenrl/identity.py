@@ -20,6 +20,7 @@ router's access control lets that login send, and the checks a process makes bef
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -40,6 +41,8 @@ DEV_PASSWORD_SUFFIX = "-dev-password"
 ALLOW_DEV_ENV = "ZENRL_ALLOW_DEV_CREDENTIALS"
 #: the ACL subject listing every actor login (the rules all actors share)
 ACTORS_SUBJECT = "actors"
+#: a directory of actor logins (client-actor-<i>.json5) of which an actor takes the first free one
+ACTOR_LOGINS_ENV = "ZENRL_ACTOR_LOGINS"
 
 _ACTOR_USER = re.compile(r"^actor-(\d+)$")
 _PER_ACTOR_ID = re.compile(r"^actor-\d+(-publish|-tokens)?$")
@@ -125,6 +128,33 @@ def bind_actor(client_config: str | None, actor_id: str | None, slot: int | None
     return user, i
 
 
+#: lock files of the logins this process took (kept open: closing one frees the login)
+_taken: list[Any] = []
+
+
+def take_actor_login(pool: str | Path) -> str:
+    """The first actor login of ``pool`` (``client-actor-<i>.json5``, lowest ``i`` first) that no
+    other process on this machine holds: an exclusive ``flock`` on the file, held until this
+    process exits (also when it crashes), so that replicas started from one template (``docker
+    compose --scale actor=N``, sharing the credentials volume) get distinct identities. Returns
+    the file's path; :class:`ConfigError` when every login is taken."""
+    files = sorted(Path(pool).glob("client-actor-*.json5"), key=lambda f: actor_index(f.stem[len("client-"):]) or 0)
+    files = [f for f in files if actor_index(f.stem[len("client-"):]) is not None]
+    if not files:
+        raise ConfigError(f"{ACTOR_LOGINS_ENV}={str(pool)!r} holds no actor login (client-actor-<i>.json5)")
+    for f in files:
+        fh = open(f, "rb")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            continue
+        _taken.append(fh)
+        return str(f)
+    raise ConfigError(f"every actor login in {str(pool)!r} is taken ({len(files)} actors run): make more with "
+                      "zenrl credentials --actors N --force (and restart the router)")
+
+
 # ---------------------------------------------------------------------------------------------
 # Making credentials
 # ---------------------------------------------------------------------------------------------
@@ -181,13 +211,14 @@ def client_doc(user: str, password: str, ca: str) -> dict[str, Any]:
 
 
 def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: str = "/certs/ca.pem",
-                     dev: bool = False, force: bool = False) -> dict[str, Any]:
+                     dev: bool = False, force: bool = False, owner: tuple[int, int] | None = None) -> dict[str, Any]:
     """Write a credential set to ``out``: ``users.txt``, ``client-<role>.json5`` for every role
     and ``client-actor-<i>.json5`` for ``i < actors``, and ``router-secure.json5`` /
     ``host-router-secure.json5`` made from those in ``templates`` (deploy/zenoh) with the access
     control expanded for ``actors`` and the host router's own password. Passwords are random
     (``dev``: the repository's development ones). An existing set (``out/users.txt``) is kept
-    unless ``force``. Returns ``{"written": bool, "dir", "actors", "users"}``."""
+    unless ``force``. ``owner``: (uid, gid) of every file (a root setup container writing for
+    the non-root services); files are readable by their owner only. Returns ``{"written": bool, "dir", "actors", "users"}``."""
     out, templates = Path(out), Path(templates)
     if (out / "users.txt").exists() and not force:
         return {"written": False, "dir": str(out), "users": sorted(read_users(out / "users.txt"))}
@@ -195,6 +226,8 @@ def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: st
         if not (templates / name).is_file():
             raise ConfigError(f"--templates {str(templates)!r} has no {name} (give deploy/zenoh)")
     out.mkdir(parents=True, exist_ok=True)
+    for stale in out.glob("client-actor-*.json5"):  # logins of an earlier, larger set
+        stale.unlink()
     users = [*ROLE_USERS, HOST_ROUTER_USER, *(actor_user(i) for i in range(actors))]
     passwords = {u: f"{u}{DEV_PASSWORD_SUFFIX}" if dev else secrets.token_urlsafe(24) for u in users}
 
@@ -204,6 +237,8 @@ def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: st
         with os.fdopen(fd, "w") as f:
             f.write(text)
         os.chmod(path, 0o600)
+        if owner is not None:
+            os.chown(path, *owner)
 
     for u in users:
         if u != HOST_ROUTER_USER:
