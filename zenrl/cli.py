@@ -222,7 +222,7 @@ def cmd_credentials(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "credentials")
     owner = tuple(int(x) for x in args.owner.split(":")) if args.owner else None
     out = make_credentials(args.templates, args.out, args.actors, ca=args.ca, dev=args.dev, force=args.force,
-                           owner=owner)  # type: ignore[arg-type]
+                           owner=owner, users_file=args.users_file)  # type: ignore[arg-type]
     sys.stdout.write(json.dumps(out) + "\n")
     return 0
 
@@ -458,6 +458,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dev", action="store_true", help="the repository's development passwords instead of random ones")
     s.add_argument("--force", action="store_true", help="overwrite an existing set")
     s.add_argument("--owner", metavar="UID:GID", help="owner of the files written (a root setup container)")
+    s.add_argument("--users-file", metavar="PATH",
+                   help="where the routers read users.txt (default the templates' /zenoh/users.txt)")
     s.add_argument("--log-level", default="WARNING")
     s.set_defaults(func=cmd_credentials)
 

@@ -211,14 +211,16 @@ def client_doc(user: str, password: str, ca: str) -> dict[str, Any]:
 
 
 def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: str = "/certs/ca.pem",
-                     dev: bool = False, force: bool = False, owner: tuple[int, int] | None = None) -> dict[str, Any]:
+                     dev: bool = False, force: bool = False, owner: tuple[int, int] | None = None,
+                     users_file: str | None = None) -> dict[str, Any]:
     """Write a credential set to ``out``: ``users.txt``, ``client-<role>.json5`` for every role
     and ``client-actor-<i>.json5`` for ``i < actors``, and ``router-secure.json5`` /
     ``host-router-secure.json5`` made from those in ``templates`` (deploy/zenoh) with the access
     control expanded for ``actors`` and the host router's own password. Passwords are random
     (``dev``: the repository's development ones). An existing set (``out/users.txt``) is kept
     unless ``force``. ``owner``: (uid, gid) of every file (a root setup container writing for
-    the non-root services); files are readable by their owner only. Returns ``{"written": bool, "dir", "actors", "users"}``."""
+    the non-root services); files are readable by their owner only. ``users_file``: where the
+    routers will read users.txt (default: the templates' path, /zenoh/users.txt). Returns ``{"written": bool, "dir", "actors", "users"}``."""
     out, templates = Path(out), Path(templates)
     if (out / "users.txt").exists() and not force:
         return {"written": False, "dir": str(out), "users": sorted(read_users(out / "users.txt"))}
@@ -246,6 +248,8 @@ def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: st
     for name, extra in (("router-secure.json5", {}),
                         ("host-router-secure.json5", {"transport/auth/usrpwd/password": passwords[HOST_ROUTER_USER]})):
         acl = config_section(str(templates / name), "access_control")
+        if users_file:
+            extra = {**extra, "transport/auth/usrpwd/dictionary_file": users_file}
         tmp = out / f".{name}.tmp"
         write_config(str(templates / name), str(tmp), {"access_control": expand_acl(acl, actors), **extra})
         write(name, tmp.read_text())
