@@ -210,11 +210,26 @@ def client_doc(user: str, password: str, ca: str) -> dict[str, Any]:
                           "auth": {"usrpwd": {"user": user, "password": password}}}}
 
 
+def write_actor_login(logins: str | Path, index: int | str, out: str | Path) -> None:
+    """Write login ``actor-<index>`` of ``logins`` (``actor-logins.json``) to ``out`` (a client
+    config, owner-readable only): a Kubernetes actor pod's init container, with ``index`` its
+    StatefulSet ordinal. :class:`ConfigError` when there is no such login."""
+    user = actor_user(int(index))
+    doc = json.loads(Path(logins).read_text()).get(user)
+    if doc is None:
+        raise ConfigError(f"{str(logins)!r} has no login {user}: make more actor logins (prepare.sh NAMESPACE ACTORS, "
+                          "zenrl credentials --actors N) or run fewer actors")
+    fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump(doc, f)
+
+
 def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: str = "/certs/ca.pem",
                      dev: bool = False, force: bool = False, owner: tuple[int, int] | None = None,
                      users_file: str | None = None) -> dict[str, Any]:
     """Write a credential set to ``out``: ``users.txt``, ``client-<role>.json5`` for every role
-    and ``client-actor-<i>.json5`` for ``i < actors``, and ``router-secure.json5`` /
+    and ``client-actor-<i>.json5`` for ``i < actors`` (all of these also in ``actor-logins.json``),
+    and ``router-secure.json5`` /
     ``host-router-secure.json5`` made from those in ``templates`` (deploy/zenoh) with the access
     control expanded for ``actors`` and the host router's own password. Passwords are random
     (``dev``: the repository's development ones). An existing set (``out/users.txt``) is kept
@@ -254,6 +269,9 @@ def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: st
         write_config(str(templates / name), str(tmp), {"access_control": expand_acl(acl, actors), **extra})
         write(name, tmp.read_text())
         tmp.unlink()
+    # every actor login in one file, for a Kubernetes Secret (write_actor_login picks one out)
+    write("actor-logins.json", json.dumps({actor_user(i): client_doc(actor_user(i), passwords[actor_user(i)], ca)
+                                           for i in range(actors)}) + "\n")
     # written last: its presence marks a complete set
     write("users.txt", "".join(f"{u}:{passwords[u]}\n" for u in users))
     return {"written": True, "dir": str(out), "actors": actors, "users": users}
