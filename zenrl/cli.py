@@ -18,7 +18,6 @@ from typing import Callable
 from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig, describe_options, load_config
 from zenrl.common.errors import CheckpointError, ConfigError, ZenrlError
-from zenrl.identity import check_dev_credentials
 from zenrl.placement import apply_from_env
 
 log = logging.getLogger("zenrl")
@@ -101,6 +100,7 @@ def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConf
 def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
     from zenrl.common.roles import RoleFailed
     from zenrl.common.transport import install_stop_signals
+    from zenrl.identity import check_dev_credentials
 
     setup_logging(args.log_level, role)
     placed = apply_from_env()  # before any thread starts, so that every thread inherits it
@@ -153,7 +153,7 @@ def cmd_learner(args: argparse.Namespace) -> int:
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
-    from zenrl.identity import ACTOR_LOGINS_ENV, take_actor_login
+    from zenrl.identity import ACTOR_LOGINS_ENV, bind_actor, take_actor_login
     from zenrl.processes import actor_main
 
     pool = args.logins or os.environ.get(ACTOR_LOGINS_ENV)
@@ -163,8 +163,6 @@ def cmd_actor(args: argparse.Namespace) -> int:
         except ConfigError as e:
             sys.stderr.write(f"zenrl: error: {e}\n")
             return EXIT_CONFIG
-
-    from zenrl.identity import bind_actor
 
     def run(c: RunConfig, r: str, s: threading.Event) -> None:
         # a login actor-<i> is actor actor-<i> on slot <i> (the router drops anything else it sends)
@@ -192,7 +190,6 @@ def cmd_exporter(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     from zenrl.common.transport import install_stop_signals, open_router
-
     from zenrl.identity import check_router_dev_credentials
 
     setup_logging(args.log_level, "router")

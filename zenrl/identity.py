@@ -235,7 +235,8 @@ def make_credentials(templates: str | Path, out: str | Path, actors: int, ca: st
     (``dev``: the repository's development ones). An existing set (``out/users.txt``) is kept
     unless ``force``. ``owner``: (uid, gid) of every file (a root setup container writing for
     the non-root services); files are readable by their owner only. ``users_file``: where the
-    routers will read users.txt (default: the templates' path, /zenoh/users.txt). Returns ``{"written": bool, "dir", "actors", "users"}``."""
+    routers will read users.txt (default: the templates' path, /zenoh/users.txt). Returns
+    ``{"written": bool, "dir", "actors", "users"}``."""
     out, templates = Path(out), Path(templates)
     if (out / "users.txt").exists() and not force:
         return {"written": False, "dir": str(out), "users": sorted(read_users(out / "users.txt"))}

@@ -749,6 +749,8 @@ def _updates_at_resume(log: str) -> list[int]:
     return [int(n) for n in re.findall(r"resumed from \S*ckpt-\d+\.pt: (\d+) updates", log)]
 
 
+# the first of these tests also waits for the module's image build (docker_images, up to 30 min)
+@pytest.mark.timeout(2400)
 def test_docker_cluster_up_scale_resume_crash_down(docker_images, run_id):
     """The plain cluster on a real engine: up (first update within 60 s), status, scale to 4
     actors, stop + up resumes, a crashed learner process is restarted and resumes, down."""
@@ -823,6 +825,7 @@ def test_docker_cluster_up_scale_resume_crash_down(docker_images, run_id):
         cluster.cleanup()
 
 
+@pytest.mark.timeout(2400)
 def test_docker_secure_cluster_refuses_strangers_and_forged_weights(docker_images, run_id, tmp_path):
     """The secured cluster on a real engine: the first `up` makes fresh credentials; it trains;
     a client without credentials, or with the repository's development password, is refused; an
