@@ -165,6 +165,33 @@ def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,
         raise TransportError(f"could not connect to the Zenoh router at {ep}: {e}") from e
 
 
+def config_section(path: str, key: str) -> Any:
+    """One section of the Zenoh JSON5 config file ``path`` as plain data, e.g.
+    ``config_section(f, "transport/auth/usrpwd")`` -> ``{"user": ..., "password": ...,
+    "dictionary_file": ...}`` (``None`` values where unset). Raises :class:`TransportError`
+    naming the file when it cannot be read."""
+    try:
+        return json.loads(zenoh.Config.from_file(path).get_json(key))
+    except zenoh.ZError as e:
+        raise TransportError(f"Zenoh config {path!r} is invalid: {e}") from e
+
+
+def write_config(template: str, out: str, sections: dict[str, Any]) -> None:
+    """Write the Zenoh config file ``template`` with ``sections`` (``{"path/in/config": value}``)
+    replaced to ``out``, as JSON (every setting spelled out; comments are not kept). The Zenoh
+    id is left unset, so that every router started from ``out`` draws its own."""
+    try:
+        cfg = zenoh.Config.from_file(template)
+        for k, v in sections.items():
+            cfg.insert_json5(k, json.dumps(v))
+        doc = json.loads(str(cfg))
+    except zenoh.ZError as e:
+        raise TransportError(f"Zenoh config {template!r}: {e}") from e
+    doc.pop("id", None)
+    with open(out, "w") as f:
+        json.dump(doc, f, indent=1)
+
+
 class Node:
     """One process's Zenoh session plus the entities it declared; closes them all on exit.
 
