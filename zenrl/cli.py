@@ -47,8 +47,8 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2"),
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
                 "env", "transport", "actor.num_actors"),
-    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "network", "env",
-              "transport", "learner.gamma"),
+    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
+              "env", "transport", "learner.gamma"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
 }
