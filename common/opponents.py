@@ -347,6 +347,9 @@ class OpponentWrapper(gym.Wrapper):
         if "opponent" not in options:
             name = self.chooser(self.pool, self.rng)
             if name is not None:
+                if name not in self.pool:
+                    raise ValueError(f"the opponent chooser picked {name!r}, which is not in the pool "
+                                     f"({', '.join(self.pool.names()) or 'empty'})")
                 entry = self.pool.get(name)
                 if entry.kind == "bot":
                     options["opponent"] = entry.bot

@@ -175,6 +175,9 @@ def test_a_pluggable_chooser_and_the_env_draw(files):
                 _, _, te, tr, info = env.step(0)
                 done = te or tr
         assert [r.opponent for r in results] == ["cheese", "frozen", "cheese"]
+        env.chooser = lambda pool, rng: "nobody"
+        with pytest.raises(ValueError, match="picked 'nobody', which is not in the pool \\(frozen, cheese\\)"):
+            env.reset(seed=0)
     finally:
         env.close()
 
