@@ -58,6 +58,10 @@ class Ingest:
         self.journal = journal
         self.store: Store | None = None
         self.queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=rcfg.queue_size)
+        #: bytes of the chunks in ``queue``; ``_space`` guards it and wakes a waiting callback
+        self.queued_bytes = 0
+        self._space = threading.Condition()
+        self.limits = P.DecodeLimits(rcfg.max_decoded_bytes, None if checker is None else checker.packed_shapes())
         #: set first on shutdown: the callback then returns at once (never waits on a queue that
         #: is about to stop being drained)
         self.closing = threading.Event()
@@ -78,28 +82,46 @@ class Ingest:
         if self.quarantine.active and self.quarantine.drop(source_of(key)):
             self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
             return
-        # wait for queue space in short slices so that a shutdown is noticed at once, not after
-        # drop_after_s per chunk (a full queue's consumer may be the one stopping)
+        # wait for queue space (a free slot and room for its bytes; an empty queue takes any
+        # chunk) in short slices so that a shutdown is noticed at once, not after drop_after_s
+        # per chunk (a full queue's consumer may be the one stopping)
+        n = len(payload)
+        cap = self.rcfg.queue_max_bytes
         deadline = time.monotonic() + self.rcfg.drop_after_s
-        while not self.closing.is_set():
-            try:
-                self.queue.put((key, payload), timeout=min(0.05, max(0.0, deadline - time.monotonic())))
-                return
-            except queue.Full:
-                if time.monotonic() >= deadline:
+        with self._space:
+            while not self.closing.is_set():
+                if self.queued_bytes == 0 or (self.queued_bytes + n <= cap and not self.queue.full()):
+                    try:
+                        self.queue.put_nowait((key, payload))
+                    except queue.Full:
+                        pass
+                    else:
+                        self.queued_bytes += n
+                        return
+                left = deadline - time.monotonic()
+                if left <= 0:
                     self.dropped_queue_full += 1
-                    self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+                    self.rejects.reject("queue_full", f"ingest queue full ({self.queue.qsize()} chunks, {self.queued_bytes} "
+                                        f"bytes) for {self.rcfg.drop_after_s} s; chunk dropped", key)
                     return
+                self._space.wait(min(0.05, left))
         self.dropped_stopping += 1  # arrived while stopping: never inserted, so never acknowledged as such
 
     def unit(self) -> int:
         """The ingest thread's unit of work: wait briefly for a chunk, then ingest it together with
         what else is queued (one insert and tree update for many chunks). Returns items inserted."""
         try:
-            first = self.queue.get(timeout=0.2)
+            first = self._took(self.queue.get(timeout=0.2))
         except queue.Empty:
             return 0
         return self._ingest_queued(first)
+
+    def _took(self, item: tuple[str, bytes]) -> tuple[str, bytes]:
+        """Account for a chunk taken from the queue (its bytes free room for the callback)."""
+        with self._space:
+            self.queued_bytes -= len(item[1])
+            self._space.notify()
+        return item
 
     def pending(self) -> int:
         """Chunks waiting in the queue."""
@@ -109,7 +131,7 @@ class Ingest:
         """On stop: insert (and log) what was queued before the subscriber went, not lose it."""
         while True:
             try:
-                first = self.queue.get_nowait()
+                first = self._took(self.queue.get_nowait())
             except queue.Empty:
                 return
             self._ingest_queued(first)
@@ -118,20 +140,32 @@ class Ingest:
         batch = [first]
         while len(batch) < self.rcfg.ingest_batch_chunks:
             try:
-                batch.append(self.queue.get_nowait())
+                batch.append(self._took(self.queue.get_nowait()))
             except queue.Empty:
                 break
         return self.ingest_many([(payload, key) for key, payload in batch])
 
     # -- decode, check, insert -------------------------------------------------------------------
     def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
-        """Decode, check and insert each ``(payload, source)``; the good ones as one batch. A bad
-        chunk is rejected and counted alone. Returns the items inserted."""
+        """Decode, check and insert each ``(payload, source)``; the good ones as one batch (a new
+        batch each time the decoded chunks reach ``replay.max_decoded_bytes``, so that the
+        decoded data held at once stays bounded). A bad chunk is rejected and counted alone.
+        Returns the items inserted."""
         chunks: list[Chunk] = []
+        held, n = 0, 0
         for payload, source in items:
             c = self._guard(source, self._decode, payload, source)
-            if c is not None:
-                chunks.append(c)
+            if c is None:
+                continue
+            chunks.append(c)
+            held += c.nbytes
+            if held >= self.rcfg.max_decoded_bytes:
+                n += self._store_batch(chunks)
+                chunks, held = [], 0
+        return n + self._store_batch(chunks)
+
+    def _store_batch(self, chunks: list[Chunk]) -> int:
+        """Check and insert decoded chunks as one batch; returns the items inserted."""
         if not chunks:
             return 0
         with self.lock:
@@ -146,9 +180,12 @@ class Ingest:
 
     def _decode(self, payload: bytes, source: str) -> Chunk | None:
         try:
-            msg = P.TransitionBatch.decode(payload, self.max_bytes)
+            msg = P.TransitionBatch.decode(payload, self.max_bytes, self.limits)
         except ProtocolError as e:
             self.reject(e.reason, str(e), source)
+            return None
+        if msg.frames is not None and source and source_of(source) != msg.actor_id:
+            self.reject("source", f"a frame-mode chunk names actor {msg.actor_id!r} but arrived on {source}", source)
             return None
         return Chunk.of(payload, msg, source)
 
