@@ -37,8 +37,9 @@ log = logging.getLogger(__name__)
 
 #: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
 TOP_SOURCES = 20
-#: Sources whose rejections are counted by name (the totals count them all).
-MAX_SOURCES = 10_000
+#: Sources whose rejections are counted by name, the heaviest kept (the totals count them all;
+#: the quarantine tracks as many on its own).
+MAX_SOURCES = 1024
 
 
 def source_of(key: str) -> str:
