@@ -12,6 +12,10 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 
+#: Longest status line (a stats string; the protocol admits 4096 characters).
+MAX_LINE = 4000
+
+
 @dataclass
 class QuarantineEntry:
     until: float
@@ -98,7 +102,8 @@ class Quarantine:
         live = [(s, e) for s, e in self.active.items() if now < e.until]
         shown = sorted(live, key=lambda x: (-x[1].count, x[0]))[:top]
         line = "; ".join(f"{s} ({e.reason}, {e.count} dropped, {max(0.0, e.until - now):.0f} s left)" for s, e in shown)
-        return line + (f"; ... and {len(live) - len(shown)} more" if len(live) > len(shown) else "")
+        more = f"; ... and {len(live) - len(shown)} more" if len(live) > len(shown) else ""
+        return line[:MAX_LINE - len(more)] + more
 
 
 class TopCounter:

@@ -62,6 +62,8 @@ class Ingest:
         #: bytes of the chunks in ``queue``; ``_space`` guards it and wakes a waiting callback
         self.queued_bytes = 0
         self._space = threading.Condition()
+        #: chunks the ingest thread has taken from the queue and not finished
+        self.in_hand = 0
         self.limits = P.DecodeLimits(rcfg.max_decoded_bytes, None if checker is None else checker.packed_shapes())
         #: set first on shutdown: the callback then returns at once (never waits on a queue that
         #: is about to stop being drained)
@@ -125,8 +127,10 @@ class Ingest:
         return item
 
     def pending(self) -> int:
-        """Chunks waiting in the queue."""
-        return self.queue.qsize()
+        """Chunks waiting: in the queue, and those the ingest thread has taken but not finished
+        (a thread stuck on the chunks it holds has input waiting too: the supervisor reports
+        it stalled)."""
+        return self.queue.qsize() + self.in_hand
 
     def drain(self) -> None:
         """On stop: insert (and log) what was queued before the subscriber went, not lose it."""
@@ -144,7 +148,11 @@ class Ingest:
                 batch.append(self._took(self.queue.get_nowait()))
             except queue.Empty:
                 break
-        return self.ingest_many([(payload, key) for key, payload in batch])
+        self.in_hand = len(batch)
+        try:
+            return self.ingest_many([(payload, key) for key, payload in batch])
+        finally:
+            self.in_hand = 0
 
     # -- decode, check, insert -------------------------------------------------------------------
     def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
