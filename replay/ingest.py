@@ -59,7 +59,8 @@ class Ingest:
         self.journal = journal
         self.store: Store | None = None
         self.queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=rcfg.queue_size)
-        #: bytes of the chunks in ``queue``; ``_space`` guards it and wakes a waiting callback
+        #: bytes of the chunks in ``queue`` and in the ingest thread's hands (so that both together
+        #: stay within ``replay.queue_max_bytes``); ``_space`` guards it and wakes a waiting callback
         self.queued_bytes = 0
         self._space = threading.Condition()
         #: chunks the ingest thread has taken from the queue and not finished
@@ -84,6 +85,9 @@ class Ingest:
         """Zenoh's callback for ``transitions/*``: enqueue, or drop and count."""
         if self.quarantine.active and self.quarantine.drop(source_of(key)):
             self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
+            return
+        if len(payload) > self.max_bytes:  # refused before it takes any room in the queue
+            self.reject("size", f"{len(payload)} bytes exceeds the cap of {self.max_bytes} bytes", key)
             return
         # wait for queue space (a free slot and room for its bytes; an empty queue takes any
         # chunk) in short slices so that a shutdown is noticed at once, not after drop_after_s
@@ -120,11 +124,15 @@ class Ingest:
         return self._ingest_queued(first)
 
     def _took(self, item: tuple[str, bytes]) -> tuple[str, bytes]:
-        """Account for a chunk taken from the queue (its bytes free room for the callback)."""
-        with self._space:
-            self.queued_bytes -= len(item[1])
-            self._space.notify()
+        """A chunk taken from the queue; its bytes stay counted until :meth:`_done` (the ingest
+        thread holds them meanwhile)."""
         return item
+
+    def _done(self, batch: Sequence[tuple[str, bytes]]) -> None:
+        """The chunks of ``batch`` are handled: their bytes free room for the callback."""
+        with self._space:
+            self.queued_bytes -= sum(len(p) for _, p in batch)
+            self._space.notify()
 
     def pending(self) -> int:
         """Chunks waiting: in the queue, and those the ingest thread has taken but not finished
@@ -153,6 +161,7 @@ class Ingest:
             return self.ingest_many([(payload, key) for key, payload in batch])
         finally:
             self.in_hand = 0
+            self._done(batch)
 
     # -- decode, check, insert -------------------------------------------------------------------
     def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
