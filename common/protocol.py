@@ -291,7 +291,17 @@ def decode_array(name: str, m: Any) -> np.ndarray:
     dt = _DTYPES.get(dtype) if type(dtype) is str else None
     if dt is None:
         raise ProtocolError(f"{name}.dtype", f"{dtype!r:.100} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
-    expected = dt.itemsize * declared_elements(name, shape)
+    if type(shape) is not list or len(shape) > MAX_NDIM:
+        raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
+    expected = dt.itemsize
+    for d in shape:
+        if type(d) is not int or d < 0:
+            raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
+        expected *= d
+    if not expected:
+        # a non-empty array's bytes bound its shape (the message cap is at most 1 GiB); an
+        # empty one's dimensions must be bounded on their own (a zero hides the rest)
+        declared_elements(name, shape)
     if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
     if expected != len(data):
@@ -500,19 +510,31 @@ def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, limit
     return cls._from_envelope(env, limits or _DEFAULT_LIMITS)
 
 
+
+
+
+_ARRAY_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
+
+
+def _array_fields(cls: type["Message"]) -> tuple[tuple[str, bool], ...]:
+    """``(field, is a map of arrays)`` of the array fields of ``cls``, built once per class."""
+    out = _ARRAY_FIELDS.get(cls)
+    if out is None:
+        out = _ARRAY_FIELDS[cls] = tuple((n, k.startswith("arrays")) for n, k in cls.SCHEMA.items() if k.startswith("array"))
+    return out
+
+
 def _check_declared(cls: type["Message"], env: dict[str, Any], limits: DecodeLimits) -> None:
     """The compressed arrays of a message, from their declared numbers alone (nothing is
     decompressed): each header is sane, allowed by the receiver's spec (``limits.packed``), and
     together they declare at most ``limits.max_decoded_bytes``. Maps too malformed to read are
     left to the full decoder, which refuses them."""
     total = 0
-    for n, kind in cls.SCHEMA.items():
-        if not kind.startswith("array"):
-            continue
+    for n, many in _array_fields(cls):
         v = env.get(n)
         if type(v) is not dict:
             continue
-        if kind.startswith("arrays"):
+        if many:
             if len(v) > MAX_FIELDS:
                 raise ProtocolError(n, f"has {len(v)} arrays, more than {MAX_FIELDS}", "size")
             items = v.items()
