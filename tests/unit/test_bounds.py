@@ -471,3 +471,15 @@ def test_health_fails_while_the_ingest_thread_makes_no_progress_with_input_waiti
         assert judge("replay", "tok", "replay", ["replay"], {"replay": sup.values()}, 5.0)[0]
     finally:
         svc.close()
+
+
+def test_status_shows_the_top_rejected_sources():
+    from zenrl.launcher.status_client import _detail
+
+    row = {"role": "replay", "size": 10, "capacity": 100, "rejected_total": 14, "rejected_from/evil": 9,
+           "rejected_from/fuzz1": 3, "rejected_from/fuzz2": 1, "rejected_from/fuzz3": 1, "quarantined": 1,
+           "quarantined_sources": "evil (action_range, 4 dropped, 50 s left)"}
+    line = _detail(row, None)
+    assert line.startswith("size 10 / 100; rejected 14 (top: evil 9, fuzz1 3, ")
+    assert "quarantined 1: evil (action_range" in line and line.count("fuzz") == 2
+    assert _detail({"role": "replay", "size": 1, "capacity": 2}, None) == "size 1 / 2"

@@ -116,10 +116,23 @@ def _fmt_rate(r: dict[str, Any]) -> str:
     return f"{v:,.1f} {r.get('rate_unit', '/s')}" if v < 100 else f"{v:,.0f} {r.get('rate_unit', '/s')}"
 
 
+def _rejections(r: dict[str, Any], top: int = 3) -> str:
+    """``; rejected N (top: a 8, b 3); quarantined K: ...`` from a service's stats, or ``""``."""
+    n = r.get("rejected_total") or 0
+    if not n:
+        return ""
+    srcs = sorted(((k.split("/", 1)[1], v) for k, v in r.items() if k.startswith("rejected_from/") and isinstance(v, int)),
+                  key=lambda kv: -kv[1])[:top]
+    out = f"; rejected {n:,}" + (f" (top: {', '.join(f'{s} {c:,}' for s, c in srcs)})" if srcs else "")
+    if r.get("quarantined"):
+        out += f"; quarantined {r['quarantined']}: {str(r.get('quarantined_sources', ''))[:120]}"
+    return out
+
+
 def _detail(r: dict[str, Any], learner_version: int | None) -> str:
     role = r["role"]
     if role == "replay" and "size" in r:
-        return f"size {r['size']:,} / {r.get('capacity', 0):,}"
+        return f"size {r['size']:,} / {r.get('capacity', 0):,}" + _rejections(r)
     if role == "actor" and learner_version is not None and r.get("policy_version") is not None:
         return f"lag {learner_version - int(r['policy_version'])} versions"
     if role == "learner" and r.get("policy_lag") is not None:
