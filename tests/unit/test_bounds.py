@@ -483,3 +483,23 @@ def test_status_shows_the_top_rejected_sources():
     assert line.startswith("size 10 / 100; rejected 14 (top: evil 9, fuzz1 3, ")
     assert "quarantined 1: evil (action_range" in line and line.count("fuzz") == 2
     assert _detail({"role": "replay", "size": 1, "capacity": 2}, None) == "size 1 / 2"
+
+
+def test_unroll_decode_limits_from_the_env_spec(monkeypatch):
+    """An IMPALA learner decoding with its checker's limits refuses a compressed observation of
+    another item shape, or of a float field, before decompressing it."""
+    from zenrl.common.unroll_checks import UnrollChecker
+
+    called = []
+    real = lz4.block.decompress
+    monkeypatch.setattr(lz4.block, "decompress", lambda *a, **k: called.append(1) or real(*a, **k))
+    chk = UnrollChecker({"obs": ObsRule("uint8", (32, 32))}, n_actions=2, max_abs_reward=10.0)
+    T = 4
+    args = (np.zeros(T, np.int64), np.full(T, -0.7, np.float32), np.zeros(T, np.float32), np.zeros(T, bool), np.zeros(T, bool))
+    good = P.Unroll("a0", 0, 0, {"obs": np.zeros((T + 1, 32, 32), np.uint8)}, *args).encode(codec="lz4")
+    assert P.Unroll.decode(good, limits=chk.decode_limits()).obs["obs"].shape == (T + 1, 32, 32) and called
+    called.clear()
+    bad = P.Unroll("a0", 0, 0, {"obs": np.zeros((T + 1, 64, 32), np.uint8)}, *args).encode(codec="lz4")
+    with pytest.raises(P.ProtocolError) as e:
+        P.Unroll.decode(bad, limits=chk.decode_limits())
+    assert e.value.reason == "spec" and not called
