@@ -113,7 +113,7 @@ def _mem(pid):
 @pytest.mark.slow
 def test_each_attack_class_is_counted_and_memory_stays_bounded(router, run_id, procs, tmp_path):
     keys = P.Keys(run_id)
-    capacity = 1_000_000
+    capacity = 2_000_000  # Ape-X's replay size
     replay = procs.zenrl("replay", ["replay", "--router", router, "--run-id", run_id, "--set", f"runs_dir={tmp_path}",
                                     "--set", "replay.stats_interval_s=0.3", "--set", "replay.min_size=1",
                                     "--set", f"replay.capacity={capacity}", "--set", "replay.quarantine_rejections=5",
@@ -166,10 +166,10 @@ def test_each_attack_class_is_counted_and_memory_stays_bounded(router, run_id, p
         cap = MAX_MESSAGE
         rows = (cap - 4096) // 46  # 46 bytes a transition
         filler = node.publisher(keys.transitions("filler"))
-        full = P.TransitionBatch("filler", 0, 0, _chunk(capacity // 4, rng)).encode(cap)
-        for i in range(4):  # one at a time: none is dropped by a full queue on a loaded machine
+        full = P.TransitionBatch("filler", 0, 0, _chunk(capacity // 8, rng)).encode(cap)
+        for i in range(8):  # one at a time: none is dropped by a full queue on a loaded machine
             filler.put(full)
-            wait_until(lambda: latest().get("inserted_total", 0) >= honest_chunks * 64 + (i + 1) * (capacity // 4), 60,
+            wait_until(lambda: latest().get("inserted_total", 0) >= honest_chunks * 64 + (i + 1) * (capacity // 8), 60,
                        f"filler chunk {i + 1} inserted")
         s = wait_until(lambda: (v := latest()).get("size") == capacity and v, 30, "the storage full")
         steady = _mem(replay.pid)["VmRSS"]
