@@ -600,8 +600,6 @@ def _check(name: str, kind: str, v: Any, rng: tuple[int, int] | None = None) -> 
                 raise ProtocolError(f"{name}.{k}", "must be finite", "nonfinite")
             if type(x) is int and not INT64_MIN <= x <= INT64_MAX:
                 raise ProtocolError(f"{name}.{k}", f"{x} is outside the int64 range", "field")
-            if type(x) is str and len(x) > 4096:
-                raise ProtocolError(f"{name}.{k}", "strings are at most 4096 characters", "field")
         return v
     raise AssertionError(f"unknown schema kind {kind}")  # programming error, not input
 

@@ -218,7 +218,7 @@ def test_frame_ids_must_be_int64():
 
 
 def test_stats_maps_are_bounded():
-    for values in ({"x": 1 << 63}, {"k" * 300: 1}, {"s": "x" * 5000}):
+    for values in ({"x": 1 << 63}, {"x": (1 << 64) - 1}, {"k" * 300: 1}):
         with pytest.raises(P.ProtocolError):
             P.Stats.decode(P.Stats("replay", "r", 1.0, values).encode())
 
@@ -415,7 +415,7 @@ def test_quarantines_are_capped_and_new_offenders_still_quarantined():
     assert line.count("(spec") == 3 and line.endswith("and 7 more")
 
 
-def test_the_status_line_stays_a_valid_stats_string():
+def test_the_status_line_stays_bounded():
     q = Quarantine(1, 60.0, 60.0, clock=lambda: 0.0, max_sources=5000)
     for i in range(5000):
         q.record("n" * 60 + str(i), "spec")
