@@ -73,6 +73,8 @@ class ReplayConfig(_Section):
     stats_interval_s: float = Field(2.0, gt=0, description="How often the replay publishes its stats.")
     ingest_batch_chunks: int = Field(32, ge=1, description="Queued chunks the ingest thread validates and inserts as one batch.")
     queue_size: int = Field(256, ge=1, description="Ingest queue length (chunks) between Zenoh and the replay.")
+    queue_max_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Ingest queue bound in bytes: encoded chunks queued or being ingested (one chunk always enters an empty queue). With max_decoded_bytes and transport.max_message_bytes it bounds what a barrage of the largest messages adds to the replay's memory (docs/architecture.md).")
+    max_decoded_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Most bytes the compressed arrays of one chunk may declare (checked before decompressing; the spec's shape for each field is checked too), and the decoded bytes the ingest thread holds at once before it inserts.")
     durable: bool = Field(False, description="Keep an append-only log of inserted chunks and priority snapshots so the contents survive a crash.")
     log_dir: Optional[str] = Field(None, description="Directory of the durable log (default: <runs_dir>/<run_id>/replay).")
     flush_interval_s: float = Field(1.0, gt=0, description="fsync the durable log at most this often (the loss window after a crash).")

@@ -45,6 +45,10 @@ def init_zenoh_logging(level: str = "warn") -> None:
         _log_inited = True
 
 
+#: What Zenoh's receive cap allows above twice ``transport.max_message_bytes`` (headers).
+RX_HEADROOM_BYTES = 64 * 1024
+
+
 def router_endpoint(explicit: str | None = None) -> str:
     """The router endpoint: ``explicit`` if given, else ``$ZENRL_ROUTER``, else the default."""
     return explicit or os.environ.get(ROUTER_ENV) or DEFAULT_ROUTER
@@ -219,8 +223,13 @@ class Node:
     @classmethod
     def from_config(cls, tcfg: Any) -> "Node":
         """A node for a :class:`~zenrl.common.config.TransportConfig`."""
+        # Zenoh's own receive cap (1 GiB by default) at twice zenrl's message cap: a larger message
+        # is dropped (by Zenoh, uncounted) as its fragments arrive, not reassembled and copied in
+        # full before decoding refuses it (a peer could otherwise cost a receiver 2 GiB a message);
+        # one up to twice the cap still reaches zenrl, which refuses and counts it
+        rx = {"max_message_size": 2 * int(tcfg.max_message_bytes) + RX_HEADROOM_BYTES}
         node = cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config,
-                   extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}}})
+                   extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}, "link": {"rx": rx}}})
         node.close_linger_s = tcfg.close_linger_s
         return node
 
