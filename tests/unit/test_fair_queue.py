@@ -112,7 +112,9 @@ def test_steps_are_bounded_by_one_rollout(tmp_path):
     assert svc.handle("run/gradients/w0", _grads(svc, 20)) == APPLIED and svc.env_steps_trained == 20
     for steps in (21, 2**40, 2**64 - 1):
         assert svc.handle("run/gradients/w0", _grads(svc, steps)) is None
-    assert svc.rejects.counts["steps"] == 3 and svc.env_steps_trained == 20 and svc.applier.updates == 1
+    # 2**64 - 1 is outside the field's declared range: the decoder refuses it first ("field")
+    assert svc.rejects.counts["steps"] == 2 and svc.rejects.counts["field"] == 1
+    assert svc.env_steps_trained == 20 and svc.applier.updates == 1
     assert _learner(tmp_path, "a3c.max_gradient_steps=64").max_steps == 64
 
 
