@@ -43,6 +43,16 @@ WIN, DRAW, LOSS = 1, 0, -1
 STATE_FORMAT = 1
 
 
+def agent_run_id(league_run_id: str, agent: str) -> str:
+    """The run id of a learning agent's own processes (replay, learner, actors): its keys are
+    ``zenrl/<league run>.<agent>/...``, apart from every other agent's."""
+    rid = f"{league_run_id}.{agent}"
+    if len(rid) > 64:
+        raise ValueError(f"run id {rid!r} of league agent {agent!r} is longer than 64 characters; "
+                         f"use a shorter run id")
+    return rid
+
+
 @dataclass
 class Player:
     """One player. ``role``: "bot", or the learning agent's role ("main", "exploiter") for a
