@@ -271,6 +271,40 @@ class LeagueConfig(_Section):
         return next(k for k, a in self.agents.items() if a.role == "main")
 
 
+class OpponentSpec(_Section):
+    """One named match opponent of ``opponents.pool``: a scripted ``bot`` or a frozen policy
+    read from ``path``."""
+
+    bot: Optional[str] = Field(None, description="A scripted bot of the match env by name (idle, random, cheese, teriyaki, clubhouse, waypoint).")
+    path: Optional[str] = Field(None, description="A frozen policy: a checkpoint file (read weights only), or with exported: true a `zenrl export` file. Relative to the working directory.")
+    exported: bool = Field(False, description="path is a `zenrl export` TorchScript file: a program that runs code when loaded, so set it only for files you trust (e.g. models/*.pt).")
+    weight: float = Field(1.0, gt=0, description="Relative probability of drawing this opponent for an episode.")
+    epsilon: Optional[float] = Field(None, ge=0, le=1, description="Random-action probability of this frozen policy (default: opponents.epsilon).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "OpponentSpec":
+        if (self.bot is None) == (self.path is None):
+            raise ValueError("an opponent is either a scripted `bot` or a policy file `path` (give exactly one)")
+        if self.exported and self.path is None:
+            raise ValueError("exported: true needs a `path`")
+        if self.epsilon is not None and self.path is None:
+            raise ValueError("epsilon applies to a policy `path`, not to a scripted bot")
+        return self
+
+
+class OpponentsConfig(_Section):
+    pool: dict[str, OpponentSpec] = Field(default_factory=dict, description="Named match opponents (zenrl/BurgerWar* envs), one drawn per episode by weight, on whichever side env.kwargs.side gives the agent (a frozen policy sees the match from its own side); replaces the draw from env.kwargs.opponents. Each is {bot: NAME} or {path: FILE[, exported: true]}, with an optional weight, e.g. {target: {path: models/burgerwar_league.pt, exported: true}, waypoint: {bot: waypoint}}. A missing file or one of other observation/action spaces stops the run at start. Empty: the env draws from env.kwargs.opponents.")
+    epsilon: float = Field(0.0, ge=0, le=1, description="Random-action probability of the pool's frozen policies (0: greedy, the policy as it plays).")
+
+    @field_validator("pool")
+    @classmethod
+    def _names(cls, v: dict[str, OpponentSpec]) -> dict[str, OpponentSpec]:
+        for name in v:
+            if not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", name):
+                raise ValueError(f"opponent name {name!r} must be 1-64 letters, digits, '_', '.' or '-'")
+        return v
+
+
 class R2D2Config(_Section):
     """R2D2 (``algo: r2d2``): recurrent Ape-X, sequences in replay (Kapturowski et al., 2019)."""
 
@@ -314,6 +348,7 @@ class RunConfig(_Section):
     a3c: A3CConfig = Field(default_factory=A3CConfig)
     impala: ImpalaConfig = Field(default_factory=ImpalaConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
+    opponents: OpponentsConfig = Field(default_factory=OpponentsConfig)
     r2d2: R2D2Config = Field(default_factory=R2D2Config)
     league: LeagueConfig = Field(default_factory=LeagueConfig)
 
