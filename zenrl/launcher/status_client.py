@@ -14,7 +14,7 @@ from zenrl.common import protocol as P
 
 #: (stats field holding a running total, unit) per role: the rate is its change per second
 TOTALS = {"actor": ("env_steps", "env steps/s"), "learner": ("updates", "updates/s"),
-          "replay": ("inserted_total", "inserts/s")}
+          "replay": ("inserted_total", "inserts/s"), "league": ("results_total", "results/s")}
 #: the rate a process reports itself, used when it was heard only once
 OWN_RATE = {"learner": "updates_per_s", "replay": "inserts_per_s"}
 
@@ -122,6 +122,8 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
         return f"size {r['size']:,} / {r.get('capacity', 0):,}"
     if role == "actor" and learner_version is not None and r.get("policy_version") is not None:
         return f"lag {learner_version - int(r['policy_version'])} versions"
+    if role == "league" and "players" in r:
+        return f"{r['players']} players, {r.get('snapshots', 0)} snapshots (zenrl league status)"
     if role == "learner" and r.get("policy_lag") is not None:
         return f"policy lag {float(r['policy_lag']):.1f}"
     if role == "evaluator" and r.get("eval_return") is not None:

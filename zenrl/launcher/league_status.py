@@ -1,0 +1,69 @@
+"""``zenrl league status``: a running league's players (kind, version, generation), games
+played, each player's result against the main agent, and the main agent's current opponent
+distribution (PFSP plus self-play), from the league's ``league/table`` queryable."""
+
+from __future__ import annotations
+
+import json
+import sys
+from typing import Any
+
+from zenrl.common import protocol as P
+from zenrl.common.errors import RemoteTimeout, TransportError
+
+
+def rows_of(table: P.LeagueTable) -> list[dict[str, Any]]:
+    """One row per player, in join order: ``id, kind, role, version, generation, games``
+    (every match it played), ``vs_main`` [wins, draws, losses] of the main agent against it
+    (None for the main agent itself) and ``pfsp`` (its probability as the main agent's next
+    opponent)."""
+    ids = sorted(table.ids, key=lambda i: table.ids[i])
+    c = table.counts
+    main = next((i for i in ids if table.kinds[i] == "learner" and table.roles[i] == "main"), None)
+    out = []
+    for i in ids:
+        n = table.ids[i]
+        # a self-play match is one count on the diagonal; any other match is in row i
+        games = int(c[n].sum())
+        row: dict[str, Any] = {"id": i, "kind": table.kinds[i], "role": table.roles[i], "version": table.versions[i],
+                               "generation": table.generations[i], "games": games,
+                               "pfsp": float(table.main_pfsp.get(i, 0.0))}
+        if main is not None and i != main:
+            row["vs_main"] = [int(x) for x in c[table.ids[main], n]]
+        out.append(row)
+    return out
+
+
+def fetch_table(node: Any, run_id: str, timeout_s: float) -> P.LeagueTable:
+    return P.LeagueTable.decode(node.query(P.LeagueKeys(run_id).table, None, timeout_s))
+
+
+def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_config: str | None = None,
+                  as_json: bool = False, timeout_s: float = 5.0) -> int:
+    """Print the league of ``run_id`` (table or ``--json``); 1 when no league answers."""
+    from zenrl.common.transport import Node
+
+    try:
+        with Node(endpoint, connect_timeout_s, config_file=client_config) as node:
+            table = fetch_table(node, run_id, timeout_s)
+    except (RemoteTimeout, TransportError) as e:
+        sys.stderr.write(f"zenrl league status: no league of run {run_id!r} answered at {endpoint}: {e}\n")
+        return 1
+    rows = rows_of(table)
+    out = {"run_id": run_id, "router": endpoint, "players": rows, "values": table.values}
+    if as_json:
+        sys.stdout.write(json.dumps(out, default=float) + "\n")
+        return 0
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"league {run_id} ({endpoint}): {table.values.get('results_total', 0)} results")
+    for col in ("player", "kind", "version", "games", "main W/D/L vs it", "main's PFSP"):
+        t.add_column(col, justify="left" if col in ("player", "kind") else "right")
+    for r in rows:
+        kind = r["kind"] if r["kind"] != "learner" else f"learner ({r['role']}, gen {r['generation']})"
+        wdl = "/".join(map(str, r["vs_main"])) if "vs_main" in r else "-"
+        t.add_row(r["id"], kind, "-" if r["version"] < 0 else str(r["version"]), str(r["games"]), wdl,
+                  f"{r['pfsp']:.1%}")
+    Console().print(t)
+    return 0
