@@ -1,0 +1,61 @@
+"""What `zenrl run` derives for a league config (zenrl/launcher/league_run.py), and the rows of
+`zenrl league status` (zenrl/launcher/league_status.py)."""
+
+import numpy as np
+import pytest
+
+from tests.conftest import ROOT
+from zenrl.common import protocol as P
+from zenrl.common.config import load_config
+from zenrl.common.errors import ConfigError
+from zenrl.launcher.league_run import agent_configs, check_league
+from zenrl.launcher.league_status import rows_of
+
+
+def test_each_agent_gets_its_own_run_id_folder_and_actors():
+    cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml", ["runs_dir=/r"])
+    agents = agent_configs(cfg, "lg1")
+    assert set(agents) == {"main", "exploiter"}
+    m, e = agents["main"], agents["exploiter"]
+    assert (m.run_id, e.run_id) == ("lg1.main", "lg1.exploiter")
+    assert m.runs_dir == e.runs_dir == "/r/lg1/agents"
+    assert (m.league.run_id, m.league.player, e.league.player) == ("lg1", "main", "exploiter")
+    assert (m.actor.num_actors, m.actor.envs_per_actor, e.actor.num_actors) == (2, 8, 1)
+    assert m.evaluator.enabled and not e.evaluator.enabled
+    assert e.replay.capacity == 100_000 and m.replay.capacity == 300_000  # the exploiter's override
+
+
+def test_a_bad_agent_override_names_the_agent():
+    cfg = load_config(None, ["league.enabled=true", "league.agents.main.role=main",
+                             "league.agents.exploiter.role=exploiter",
+                             "league.agents.exploiter.overrides={learner.lr: -1}"])
+    with pytest.raises(ConfigError, match=r"league\.agents\.exploiter\.overrides: learner\.lr"):
+        agent_configs(cfg, "lg1")
+    with pytest.raises(ConfigError, match="longer than 64"):
+        agent_configs(load_config(None, ["league.enabled=true"]), "x" * 60)
+
+
+def test_check_league_needs_apex_and_a_match_env_with_those_bots():
+    with pytest.raises(ConfigError, match="algo apex"):
+        check_league(load_config(None, ["league.enabled=true", "algo=a3c"]))
+    with pytest.raises(ConfigError, match="match env"):
+        check_league(load_config(None, ["league.enabled=true"]))
+    with pytest.raises(ConfigError, match="league.bots: 'robocop'"):
+        check_league(load_config(None, ["league.enabled=true", "env.id=zenrl/BurgerWar-v0",
+                                        "league.bots=[cheese, robocop]"]))
+
+
+def test_status_rows():
+    ids = {"cheese": 0, "main": 1, "main-s1": 2}
+    counts = np.zeros((3, 3, 3), np.int64)
+    counts[1, 0] = [5, 1, 2]
+    counts[0, 1] = [2, 1, 5]
+    counts[1, 1] = [3, 0, 0]  # self-play
+    t = P.LeagueTable(ids=ids, kinds={"cheese": "bot", "main": "learner", "main-s1": "snapshot"},
+                      roles={"cheese": "bot", "main": "main", "main-s1": "main"},
+                      versions={"cheese": -1, "main": 40, "main-s1": 20}, generations={"cheese": 0, "main": 0, "main-s1": 0},
+                      counts=counts, main_pfsp={"cheese": 0.4, "main": 0.35, "main-s1": 0.25}, values={})
+    rows = {r["id"]: r for r in rows_of(P.LeagueTable.decode(t.encode()))}
+    assert rows["cheese"]["vs_main"] == [5, 1, 2] and rows["cheese"]["games"] == 8
+    assert rows["main"]["games"] == 11 and "vs_main" not in rows["main"]
+    assert rows["main-s1"]["games"] == 0 and rows["main-s1"]["pfsp"] == pytest.approx(0.25)
