@@ -199,7 +199,7 @@ class ImpalaConfig(_Section):
 
 class SelfPlayConfig(_Section):
     enabled: bool = Field(False, description="Self-play (zenrl/BurgerWar* envs): actors also play frozen snapshots of the learner, read from its checkpoint directory (needs a filesystem shared with the learner, as in `zenrl run`).")
-    snapshot_prob: float = Field(0.3, ge=0, le=1, description="Probability that an episode is played against a snapshot (once one is held) instead of the scripted env.kwargs.opponents.")
+    snapshot_prob: float = Field(0.3, ge=0, le=1, description="Probability that an episode is played against a snapshot (once one is held) instead of opponents.pool's draw (env.kwargs.opponents' when the pool is empty).")
     snapshot_interval_s: float = Field(300.0, gt=0, description="Each actor adds the learner's newest checkpoint to its league of snapshots at most this often.")
     max_snapshots: int = Field(10, ge=1, description="Snapshots each actor keeps (the oldest is dropped first).")
     epsilon: float = Field(0.05, ge=0, le=1, description="Random-action probability of a snapshot opponent.")

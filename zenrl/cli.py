@@ -341,6 +341,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "evaluate")
     tools.quiet_native_imports()
+    if args.round_robin:
+        return _round_robin(args)
+    if not args.checkpoint:
+        raise ZenrlError("evaluate needs --checkpoint (or --round-robin PLAYERS)")
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
     summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
                              args.workers, args.seed, progress=not args.no_progress, policy=args.policy,
@@ -351,6 +355,29 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             json.dump(summary, f, indent=1, default=float)
     brief = {k: v for k, v in summary.items() if k != "results"}
     tools.print_json_line(brief)
+    return 0
+
+
+def _round_robin(args: argparse.Namespace) -> int:
+    """``zenrl evaluate --round-robin A,B,...``: every pair plays --episodes matches."""
+    import json
+
+    from rich.console import Console
+
+    from zenrl import tools
+
+    players = [o.strip() for o in args.round_robin.split(",") if o.strip()]
+    if args.checkpoint:
+        players.insert(0, args.checkpoint)
+    summary = tools.round_robin(players, args.episodes, args.env, _json_arg(args.env_kwargs), args.workers, args.seed,
+                                progress=not args.no_progress, allow_exported=args.exported, anchor=args.anchor)
+    console = Console(width=None if sys.stdout.isatty() else 160)
+    for table in tools.render_round_robin(summary):
+        console.print(table)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(summary, f, indent=1, default=float)
+    tools.print_json_line({k: v for k, v in summary.items() if k != "results"})
     return 0
 
 
@@ -470,8 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--list", action="store_true", help="list every option with its description")
     s.set_defaults(func=cmd_config)
 
-    def policy_args(s: argparse.ArgumentParser) -> None:
-        s.add_argument("--checkpoint", required=True,
+    def policy_args(s: argparse.ArgumentParser, required: bool = True) -> None:
+        s.add_argument("--checkpoint", required=required,
                        help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest "
                             "checkpoint; with --exported (evaluate and play) also a `zenrl export` file, e.g. models/*.pt")
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
@@ -480,13 +507,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     exported_help = ("allow `zenrl export` files as --checkpoint or opponents: they are TorchScript programs, "
                      "which run code when loaded (only for files you trust; checkpoints load without running code)")
-    s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates")
-    policy_args(s)
+    s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates; "
+                                        "or a round robin of several policies and bots with Elo ratings")
+    policy_args(s, required=False)
     s.add_argument("--exported", action="store_true", help=exported_help)
     s.add_argument("--opponents", default="cheese,teriyaki,clubhouse,waypoint",
                    help="comma-separated match opponents: bot names, or checkpoint / exported policy files "
                         "(e.g. an earlier snapshot); ignored for non-match envs")
-    s.add_argument("--episodes", type=int, default=20, help="episodes per opponent (half red, half blue)")
+    s.add_argument("--round-robin", metavar="PLAYERS",
+                   help="comma-separated bots and checkpoint / exported policy files (plus --checkpoint if given): "
+                        "every pair plays --episodes matches (half on each side, each on a fresh seed from --seed; two "
+                        "bots do not meet), reported as a win/draw/loss table and Elo ratings with 95%% intervals")
+    s.add_argument("--anchor", metavar="PLAYER", help="round robin: the player rated 0 (default: the mean rating is 0)")
+    s.add_argument("--episodes", type=int, default=20,
+                   help="episodes per opponent (half red, half blue); with --round-robin, matches per pair")
     s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
     s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")
     s.add_argument("--policy", choices=("greedy", "sample"), default="greedy",
