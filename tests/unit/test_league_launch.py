@@ -9,7 +9,8 @@ from zenrl.common import protocol as P
 from zenrl.common.config import load_config
 from zenrl.common.errors import ConfigError
 from zenrl.launcher.league_run import agent_configs, check_league
-from zenrl.launcher.league_status import rows_of
+from zenrl.common.ratings import expected_score
+from zenrl.launcher.league_status import ratings_of, rows_of
 
 
 def test_each_agent_gets_its_own_run_id_folder_and_actors():
@@ -59,3 +60,21 @@ def test_status_rows():
     assert rows["cheese"]["vs_main"] == [5, 1, 2] and rows["cheese"]["games"] == 8
     assert rows["main"]["games"] == 11 and "vs_main" not in rows["main"]
     assert rows["main-s1"]["games"] == 0 and rows["main-s1"]["pfsp"] == pytest.approx(0.25)
+
+
+def test_status_ratings_count_each_match_once():
+    ids = {"cheese": 0, "main": 1, "waypoint": 2, "main-s1": 3}
+    counts = np.zeros((4, 4, 3), np.int64)
+    for a, b, rec in ((1, 0, [30, 0, 10]), (1, 2, [20, 0, 20]), (1, 1, [9, 0, 0])):
+        counts[a, b] = rec
+        counts[b, a] = rec[::-1]
+    t = P.LeagueTable(ids=ids, kinds=dict.fromkeys(ids, "bot"), roles=dict.fromkeys(ids, "bot"),
+                      versions=dict.fromkeys(ids, -1), generations=dict.fromkeys(ids, 0), counts=counts,
+                      main_pfsp={}, values={})
+    r, why = ratings_of(t)
+    assert why is None
+    assert r["main"].games == 80 and r["cheese"].games == 40  # not doubled, self-play left out
+    assert np.isnan(r["main-s1"].elo)
+    # main beats cheese 3:1 and waypoint 1:1 (one virtual draw each): expected scores follow
+    assert expected_score(r["main"].elo, r["cheese"].elo) == pytest.approx(30.5 / 41, abs=1e-6)
+    assert expected_score(r["main"].elo, r["waypoint"].elo) == pytest.approx(0.5, abs=1e-6)

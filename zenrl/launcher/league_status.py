@@ -1,4 +1,6 @@
-"""``zenrl league status``: a running league's players (kind, version, generation), games
+"""``zenrl league status``: a running league's players (kind, version, generation), their
+Bradley-Terry ratings on the Elo scale with 95% intervals (:mod:`zenrl.common.ratings`, from
+the payoff table; a learning agent's rating pools every version it played with), games
 played, each player's result against the main agent, and the main agent's current opponent
 distribution (PFSP plus self-play), from the league's ``league/table`` queryable."""
 
@@ -10,6 +12,7 @@ from typing import Any
 
 from zenrl.common import protocol as P
 from zenrl.common.errors import RemoteTimeout, TransportError
+from zenrl.common.ratings import PairRecord, fit_ratings
 
 
 def rows_of(table: P.LeagueTable) -> list[dict[str, Any]]:
@@ -34,6 +37,24 @@ def rows_of(table: P.LeagueTable) -> list[dict[str, Any]]:
     return out
 
 
+def ratings_of(table: P.LeagueTable) -> tuple[dict[str, Any], str | None]:
+    """Ratings (Elo scale, the players' mean at 0) of every player from the table's matches
+    (each pair once; self-play left out), and None, or ({}, why) when they cannot be fitted
+    (players in groups that never met)."""
+    ids = sorted(table.ids, key=lambda i: table.ids[i])
+    recs = []
+    for a in ids:
+        for b in ids:
+            i, j = table.ids[a], table.ids[b]
+            if i < j and table.counts[i, j].sum() > 0:
+                w, d, l_ = (int(x) for x in table.counts[i, j])
+                recs.append(PairRecord(a, b, w, d, l_))
+    try:
+        return fit_ratings(ids, recs), None
+    except ValueError as e:
+        return {}, str(e)
+
+
 def fetch_table(node: Any, run_id: str, timeout_s: float) -> P.LeagueTable:
     return P.LeagueTable.decode(node.query(P.LeagueKeys(run_id).table, None, timeout_s))
 
@@ -50,7 +71,13 @@ def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, cl
         sys.stderr.write(f"zenrl league status: no league of run {run_id!r} answered at {endpoint}: {e}\n")
         return 1
     rows = rows_of(table)
-    out = {"run_id": run_id, "router": endpoint, "players": rows, "values": table.values}
+    ratings, why = ratings_of(table)
+    for r in rows:
+        rt = ratings.get(r["id"])
+        if rt is not None and rt.games:
+            r.update(elo=rt.elo, elo_ci95=list(rt.ci95))
+    out = {"run_id": run_id, "router": endpoint, "players": rows, "values": table.values,
+           **({"ratings_error": why} if why else {})}
     if as_json:
         sys.stdout.write(json.dumps(out, default=float) + "\n")
         return 0
@@ -58,12 +85,15 @@ def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, cl
     from rich.table import Table
 
     t = Table(title=f"league {run_id} ({endpoint}): {table.values.get('results_total', 0)} results")
-    for col in ("player", "kind", "version", "games", "main W/D/L vs it", "main's PFSP"):
+    for col in ("player", "kind", "version", "Elo [95%]", "games", "main W/D/L vs it", "main's PFSP"):
         t.add_column(col, justify="left" if col in ("player", "kind") else "right")
     for r in rows:
         kind = r["kind"] if r["kind"] != "learner" else f"learner ({r['role']}, gen {r['generation']})"
         wdl = "/".join(map(str, r["vs_main"])) if "vs_main" in r else "-"
-        t.add_row(r["id"], kind, "-" if r["version"] < 0 else str(r["version"]), str(r["games"]), wdl,
+        elo = f"{r['elo']:+.0f} [{r['elo_ci95'][0]:+.0f}, {r['elo_ci95'][1]:+.0f}]" if "elo" in r else "-"
+        t.add_row(r["id"], kind, "-" if r["version"] < 0 else str(r["version"]), elo, str(r["games"]), wdl,
                   f"{r['pfsp']:.1%}")
     Console().print(t)
+    if why:
+        sys.stderr.write(f"zenrl league status: no ratings: {why}\n")
     return 0
