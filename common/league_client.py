@@ -74,6 +74,7 @@ class LeagueChooser:
         self.keys = P.LeagueKeys(lc.run_id)
         self.player = lc.player
         self.prefetch = lc.prefetch
+        self.first_wait_s = lc.first_wait_s
         self.epsilon = lc.opponent_epsilon
         self.bots = set(lc.bots)
         self.timeout_s = cfg.transport.query_timeout_s
@@ -93,8 +94,15 @@ class LeagueChooser:
     # -- the chooser ------------------------------------------------------------------------------
     def __call__(self, pool: OpponentPool, rng: np.random.Generator) -> str | None:
         """The next episode's opponent: the next ready assignment, else the last opponent, else
-        None (the env's own draw)."""
+        None (the env's own draw). Only the very first call (before any env step) waits, at
+        most ``league.first_wait_s``, for the league's first answer."""
         self.pump(pool)
+        if self.last is None and not self.ready and self.first_wait_s > 0:
+            deadline = self.clock() + self.first_wait_s
+            self.first_wait_s = 0.0
+            while not self.ready and (self._inflight > 0 or self._waiting) and self.clock() < deadline:
+                time.sleep(0.02)
+                self.pump(pool)
         while self.ready:
             name = self.ready.popleft()
             if name in pool:

@@ -67,7 +67,7 @@ class Clock:
 
 def setup(tmp_path, player="main", **sets):
     over = ["league.enabled=true", "league.bots=[cheese]", "league.live_refresh_s=0.001", "league.prefetch=3",
-            "league.run_id=lg", f"league.player={player}", "league.selfplay_share=0.5"]
+            "league.run_id=lg", f"league.player={player}", "league.selfplay_share=0.5", "league.first_wait_s=0"]
     cfg = load_config(None, over + [f"league.{k}={v}" for k, v in sets.items()])
     wire = Wire()
     ticks = iter(range(1000, 10**6))
@@ -177,3 +177,27 @@ def test_weights_of_another_architecture_are_refused(tmp_path):
         wire.deliver()
     assert ch.counts["weights_rejected"] >= 1 and len(pool) == 0
     assert ch(pool, rng) is None
+
+
+def test_only_the_first_reset_waits_for_the_league(tmp_path):
+    svc, wire, ch, clock = setup(tmp_path)
+    ch.first_wait_s = 5.0
+    pool = OpponentPool(3)
+    rng = np.random.default_rng(0)
+    real = ch.pump
+
+    def pump(pool):  # the league answers while the first reset waits
+        wire.deliver()
+        real(pool)
+        clock.t += 0.1
+
+    ch.pump = pump
+    first = ch(pool, rng)
+    assert parse_pool_name(first) == ("cheese", -1) and ch.counts["fallback"] == 0
+    ch.pump = real
+    wire.up = False
+    t0 = clock.t
+    while ch.ready:
+        ch(pool, rng)
+    assert ch(pool, rng) is not None and clock.t == t0  # later resets fall back at once
+    assert ch.counts["fallback"] == 1

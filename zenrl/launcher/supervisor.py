@@ -247,7 +247,7 @@ class Launcher:
             self._spawn(c, ["--auto-resume"] if c.role == "learner" and not {"--resume", "--auto-resume"} & set(c.args)
                         else None)
 
-    def _terminate(self, children: list[Child] | None = None) -> None:
+    def _terminate(self, children: list[Child] | None = None, grace_s: float = 20.0) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
         # the actors to save its checkpoint, so it stops with them (one exit wait instead of two);
         # the league with the replays, after the actors' last results
@@ -258,14 +258,14 @@ class Launcher:
             for c in group:
                 if c.proc is not None and c.proc.poll() is None:
                     c.proc.send_signal(signal.SIGTERM)
-            deadline = time.monotonic() + 20
+            deadline = time.monotonic() + grace_s
             for c in group:
                 if c.proc is None:
                     continue
                 try:
                     c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
-                    log.warning("%s did not stop within 20 s; killing it", c.name)
+                    log.warning("%s did not stop within %.0f s; killing it", c.name, grace_s)
                     c.proc.kill()
                     c.proc.wait()
 
@@ -419,7 +419,7 @@ class Launcher:
                 continue
             log.info("league: %s reset to generation %d: restarting its replay, learner and actors afresh", aid, gen)
             old = [c for c in self.children if c.agent == aid]
-            self._terminate(old)
+            self._terminate(old, grace_s=5.0)  # what they hold is discarded: no long wait for a final save
             import shutil
 
             shutil.rmtree(self.run_dir / "agents" / (self.agents[aid].run_id or ""), ignore_errors=True)
