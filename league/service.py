@@ -26,6 +26,7 @@ afresh when ``generation/<agent>`` in the league's stats goes up).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -249,17 +250,21 @@ class LeagueService:
 
     def table(self) -> P.LeagueTable:
         with self.lock:
-            lg = self.league
-            t = lg.table()
-            ids = t["ids"]
-            ps = [lg.players[i] for i in ids]
-            dist = lg.distribution(lg.main_id)
-            values = {"results_total": lg.results_total, "time": self.clock()}
-        values.update(self.rejects.as_values())
-        return P.LeagueTable(ids={i: n for n, i in enumerate(ids)}, kinds={p.id: p.kind for p in ps},
-                             roles={p.id: p.role for p in ps}, versions={p.id: p.version for p in ps},
-                             generations={p.id: p.generation for p in ps}, counts=t["counts"],
-                             main_pfsp={k: float(v) for k, v in dist.items()}, values=values)
+            msg = table_message(self.league, {"time": self.clock()})
+        return dataclasses.replace(msg, values={**msg.values, **self.rejects.as_values()})
+
+
+def table_message(lg: League, values: dict[str, Any] | None = None) -> P.LeagueTable:
+    """The :class:`~zenrl.common.protocol.LeagueTable` of ``lg`` (``values`` added to its own)."""
+    t = lg.table()
+    ids = t["ids"]
+    ps = [lg.players[i] for i in ids]
+    dist = lg.distribution(lg.main_id)
+    return P.LeagueTable(ids={i: n for n, i in enumerate(ids)}, kinds={p.id: p.kind for p in ps},
+                         roles={p.id: p.role for p in ps}, versions={p.id: p.version for p in ps},
+                         generations={p.id: p.generation for p in ps}, counts=t["counts"],
+                         main_pfsp={k: float(v) for k, v in dist.items()},
+                         values={"results_total": lg.results_total, **(values or {})})
 
 
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "league") -> None:

@@ -180,10 +180,11 @@ def _league_status(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "status")
     quiet_zenoh(args.log_level)
+    run_dir = None
     if args.run_dir:
-        run_dir = _running_run_dir(args)
-        if run_dir is None:
-            return 1
+        run_dir, running = _running_run_dir(args)
+        if not running:  # a run that stopped: the state its league saved
+            return league_status("", args.run_id or run_dir.name, as_json=args.json, run_dir=run_dir)
     cfg = resolve(args)
     if not cfg.run_id:
         raise ConfigError("which league? zenrl league status runs/<run-id>, or --run-id ID --router EP")
@@ -192,9 +193,9 @@ def _league_status(args: argparse.Namespace) -> int:
 
 
 def _running_run_dir(args: argparse.Namespace):
-    """The run folder ``args.run_dir`` names (a run id typed instead works too), with
-    ``args.run_id`` / ``args.router`` filled from its ``launcher.json``; None (and a line on
-    stderr) when its launcher is gone."""
+    """(the run folder ``args.run_dir`` names (a run id typed instead works too), whether its
+    league can be asked): ``args.run_id`` / ``args.router`` filled from its ``launcher.json``;
+    not asked when its launcher is gone and no ``--router`` was given."""
     from pathlib import Path
 
     from zenrl.launcher.runfolder import read_launcher_info
@@ -205,15 +206,13 @@ def _running_run_dir(args: argparse.Namespace):
     if not run_dir.is_dir():
         raise ConfigError(f"no run folder {args.run_dir!r} (give runs/<run-id>)")
     info = read_launcher_info(run_dir)
-    if not args.router and (info is None or not _alive(info.get("pid"))):
-        sys.stderr.write(f"zenrl: run {run_dir.name} is not running (no live launcher); give --router EP "
-                         f"for a league outside zenrl run\n")
-        return None
     if not args.run_id:
         args.run_id = info["run_id"] if info and info.get("run_id") else run_dir.name
+    if not args.router and (info is None or not _alive(info.get("pid"))):
+        return run_dir, False
     if not args.router and info is not None:
         args.router = info["router"]
-    return run_dir
+    return run_dir, True
 
 
 def cmd_router(args: argparse.Namespace) -> int:

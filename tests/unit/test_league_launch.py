@@ -78,3 +78,23 @@ def test_status_ratings_count_each_match_once():
     # main beats cheese 3:1 and waypoint 1:1 (one virtual draw each): expected scores follow
     assert expected_score(r["main"].elo, r["cheese"].elo) == pytest.approx(30.5 / 41, abs=1e-6)
     assert expected_score(r["main"].elo, r["waypoint"].elo) == pytest.approx(0.5, abs=1e-6)
+
+
+def test_status_of_a_stopped_run_reads_the_saved_league(tmp_path):
+    import yaml
+
+    from zenrl.league.core import League
+    from zenrl.league.store import LeagueStore
+    from zenrl.launcher.league_status import saved_table
+
+    cfg = load_config(None, ["league.enabled=true", "league.bots=[cheese]"])
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
+    assert saved_table(tmp_path) is None
+    lg = League(cfg.league, 0.0)
+    lg.record("main", "cheese", 1)
+    lg.record("exploiter", "main", -1)
+    LeagueStore(tmp_path / "league", 1 << 20).save(lg)
+    t = saved_table(tmp_path)
+    assert t.values["saved"] and t.values["results_total"] == 2
+    rows = {r["id"]: r for r in rows_of(t)}
+    assert rows["cheese"]["vs_main"] == [1, 0, 0] and rows["exploiter"]["vs_main"] == [1, 0, 0]

@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import json
 import sys
+import time
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from zenrl.common import protocol as P
 from zenrl.common.errors import RemoteTimeout, TransportError
@@ -59,24 +63,48 @@ def fetch_table(node: Any, run_id: str, timeout_s: float) -> P.LeagueTable:
     return P.LeagueTable.decode(node.query(P.LeagueKeys(run_id).table, None, timeout_s))
 
 
-def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_config: str | None = None,
-                  as_json: bool = False, timeout_s: float = 5.0) -> int:
-    """Print the league of ``run_id`` (table or ``--json``); 1 when no league answers."""
-    from zenrl.common.transport import Node
+def saved_table(run_dir: Path) -> P.LeagueTable | None:
+    """The table of the league state saved in ``run_dir`` (a run that has stopped), or None."""
+    from zenrl.common.config import config_from_dict
+    from zenrl.league.service import table_message
+    from zenrl.league.store import LeagueStore
 
     try:
-        with Node(endpoint, connect_timeout_s, config_file=client_config) as node:
-            table = fetch_table(node, run_id, timeout_s)
-    except (RemoteTimeout, TransportError) as e:
-        sys.stderr.write(f"zenrl league status: no league of run {run_id!r} answered at {endpoint}: {e}\n")
-        return 1
+        cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
+    except (OSError, yaml.YAMLError):
+        return None
+    lg = LeagueStore(run_dir / "league", cfg.league.max_weights_bytes).load(cfg.league, time.time())
+    return None if lg is None else table_message(lg, {"saved": True})
+
+
+def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_config: str | None = None,
+                  as_json: bool = False, timeout_s: float = 5.0, run_dir: Path | None = None) -> int:
+    """Print the league of ``run_id`` (table or ``--json``): asked of the running league at
+    ``endpoint``, or, with ``run_dir`` and no endpoint, read from the state it saved; 1 when
+    there is none."""
+    from zenrl.common.transport import Node
+
+    where = endpoint
+    if not endpoint and run_dir is not None:
+        table = saved_table(run_dir)
+        where = f"saved in {run_dir / 'league'}"
+        if table is None:
+            sys.stderr.write(f"zenrl league status: {run_dir} holds no league state\n")
+            return 1
+    else:
+        try:
+            with Node(endpoint, connect_timeout_s, config_file=client_config) as node:
+                table = fetch_table(node, run_id, timeout_s)
+        except (RemoteTimeout, TransportError) as e:
+            sys.stderr.write(f"zenrl league status: no league of run {run_id!r} answered at {endpoint}: {e}\n")
+            return 1
     rows = rows_of(table)
     ratings, why = ratings_of(table)
     for r in rows:
         rt = ratings.get(r["id"])
         if rt is not None and rt.games:
             r.update(elo=rt.elo, elo_ci95=list(rt.ci95))
-    out = {"run_id": run_id, "router": endpoint, "players": rows, "values": table.values,
+    out = {"run_id": run_id, "router": where, "players": rows, "values": table.values,
            **({"ratings_error": why} if why else {})}
     if as_json:
         sys.stdout.write(json.dumps(out, default=float) + "\n")
@@ -84,7 +112,7 @@ def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, cl
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"league {run_id} ({endpoint}): {table.values.get('results_total', 0)} results")
+    t = Table(title=f"league {run_id} ({where}): {table.values.get('results_total', 0)} results")
     for col in ("player", "kind", "version", "Elo [95%]", "games", "main W/D/L vs it", "main's PFSP"):
         t.add_column(col, justify="left" if col in ("player", "kind") else "right")
     for r in rows:
@@ -96,4 +124,7 @@ def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, cl
     Console().print(t)
     if why:
         sys.stderr.write(f"zenrl league status: no ratings: {why}\n")
+    if table.values.get("saved"):
+        sys.stderr.write("zenrl league status: the league is not running; its saved state shows no self-play share "
+                         "(the learning agents serve no weights)\n")
     return 0
