@@ -225,7 +225,7 @@ class LeagueConfig(_Section):
     players and the payoff table and answers each actor's request for its next opponent."""
 
     enabled: bool = Field(False, description="zenrl run starts the league service and one replay + learner + actors per agent in league.agents (match envs only).")
-    agents: dict[str, LeagueAgentConfig] = Field(default_factory=_default_agents, description="The learning agents by player id: exactly one with role main, any number of exploiters.")
+    agents: dict[str, LeagueAgentConfig] = Field(default_factory=_default_agents, description="The learning agents by player id, each {role: main|exploiter, num_actors, envs_per_actor, overrides: {'section.field': value}}: exactly one with role main, any number of exploiters.")
     bots: list[str] = Field(default_factory=lambda: ["cheese", "teriyaki", "clubhouse", "waypoint"], description="Scripted bots that are players of the league (the env's opponent names).")
     selfplay_share: float = Field(0.35, ge=0, le=1, description="Main agent: share of its matches against its own current weights; the rest is PFSP over the frozen players.")
     pfsp_weighting: Literal["hard", "var"] = Field("hard", description="PFSP weighting of an opponent the main agent beats with probability x: hard (1-x)^p, var x(1-x).")

@@ -163,6 +163,12 @@ class LeagueService:
 
     # -- Zenoh callbacks (short: a lock, a draw, a count) -----------------------------------------
     def on_result(self, key: str, payload: bytes) -> None:
+        try:
+            self._on_result(key, payload)
+        except Exception as e:  # noqa: BLE001 - one message costs only itself; counted by type
+            self.rejects.reject(f"internal/{type(e).__name__}", str(e), key.rsplit("/", 1)[-1])
+
+    def _on_result(self, key: str, payload: bytes) -> None:
         source = key.rsplit("/", 1)[-1]
         try:
             m = P.MatchResult.decode(payload, 64 * 1024)
@@ -205,6 +211,13 @@ class LeagueService:
 
     def on_opponent(self, payload: bytes) -> bytes | None:
         try:
+            return self._on_opponent(payload)
+        except Exception as e:  # noqa: BLE001 - one query costs only itself; counted by type
+            self.rejects.reject(f"request_internal/{type(e).__name__}", str(e))
+            return None
+
+    def _on_opponent(self, payload: bytes) -> bytes | None:
+        try:
             req = P.OpponentRequest.decode(payload, 4096)
         except ProtocolError as e:
             self.rejects.reject(f"request_{e.reason}", str(e))
@@ -229,6 +242,13 @@ class LeagueService:
         return reply.encode()
 
     def on_weights(self, payload: bytes) -> bytes | None:
+        try:
+            return self._on_weights(payload)
+        except Exception as e:  # noqa: BLE001 - one query costs only itself; counted by type
+            self.rejects.reject(f"request_internal/{type(e).__name__}", str(e))
+            return None
+
+    def _on_weights(self, payload: bytes) -> bytes | None:
         try:
             req = P.PlayerWeightsRequest.decode(payload, 4096)
         except ProtocolError as e:

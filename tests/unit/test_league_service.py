@@ -84,7 +84,12 @@ def test_results_are_counted_and_hostile_ones_rejected(tmp_path):
     on("zenrl/lg/league/results/a9", P.MatchResult("a0", "main", 0, 1, "cheese", -1, 1).encode())  # spoofed id
     bad = P.MatchResult("a0", "main", 0, 1, "cheese", -1, 1).encode().replace(b"\xa7outcome\x01", b"\xa7outcome\x07")
     on(key, bad)
+    real = svc.league.record
+    svc.league.record = lambda *a: 1 / 0  # a bug in the handling code: that message alone is lost, counted
+    result(node)
+    svc.league.record = real
     vals, _ = svc.report(1.0)
+    assert vals["rejected_internal/ZeroDivisionError"] == 1
     assert vals["rejected_malformed"] == 2
     assert vals["rejected_unknown_player"] == 1 and vals["rejected_unknown_opponent"] == 1
     assert vals["rejected_opponent_version"] == 1 and vals["rejected_generation"] == 1
