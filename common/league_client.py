@@ -13,6 +13,8 @@ and hears each match's result.
   ``league:<player>@<version>``; older versions of the same player leave the pool;
 * while the league is away (or before the first answer) a reset falls back to the last
   opponent played, or to the env's own draw from ``env.kwargs.opponents`` (the bots);
+* a ``frozen`` opponent is this actor's own ``opponents.pool`` entry of that name (a policy
+  file it loaded at start, as every actor of the run does);
 * every finished match is published as a :class:`~zenrl.common.protocol.MatchResult` on
   ``league/results/<actor>`` (a bot drawn by the env is a league player too, under its name).
 
@@ -77,6 +79,7 @@ class LeagueChooser:
         self.first_wait_s = lc.first_wait_s
         self.epsilon = lc.opponent_epsilon
         self.bots = set(lc.bots)
+        self.frozen = set(cfg.opponents.pool)
         self.timeout_s = cfg.transport.query_timeout_s
         self.max_bytes = min(cfg.transport.max_message_bytes, lc.max_weights_bytes)
         self.make_net, self.version_fn, self.clock = make_net, version_fn, clock
@@ -147,6 +150,12 @@ class LeagueChooser:
             return
         if self.generation is None:
             self.generation = rep.generation
+        if rep.kind == "frozen":  # a policy file of opponents.pool, loaded by this actor at start
+            if rep.opponent in pool:
+                self.ready.append(rep.opponent)
+            else:
+                self.counts["frozen_missing"] += 1
+            return
         if rep.kind == "bot":
             name = pool_name(rep.opponent, -1)
             if name not in pool:
@@ -205,7 +214,7 @@ class LeagueChooser:
         opponent that is no league player (none of the league's bots) is not reported."""
         parsed = parse_pool_name(r.opponent)
         if parsed is None:
-            if r.opponent not in self.bots:
+            if r.opponent not in self.bots and r.opponent not in self.frozen:
                 self.counts["unreported"] += 1
                 return
             parsed = (r.opponent, -1)

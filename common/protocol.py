@@ -898,7 +898,7 @@ MAX_LEAGUE_INT = (1 << 63) - 1
 #: Largest score a match result may report (the Burger War match has 23 points at most).
 MAX_MATCH_SCORE = 1000
 #: Kinds of league player.
-LEAGUE_KINDS = ("bot", "snapshot", "learner")
+LEAGUE_KINDS = ("bot", "frozen", "snapshot", "learner")
 
 
 class LeagueKeys:
@@ -960,7 +960,8 @@ class OpponentReply(Message):
     name; "snapshot" / "learner": a policy whose weights ``version`` the ``league/weights``
     queryable serves); ``generation``: the requesting player's (an actor reports it back with
     each result). "unknown": ``player`` is no learning agent of this league; "none": nobody can
-    be played yet (fall back to a bot); ``reason`` says why."""
+    be played yet (fall back to a bot); ``reason`` says why. ``kind`` "frozen": the entry of
+    that name in the actor's own ``opponents.pool`` (a policy file it loaded itself)."""
 
     TYPE: ClassVar[str] = "opponent_reply"
     SCHEMA: ClassVar[dict[str, str]] = {"status": "str", "player": "name", "generation": "uint",

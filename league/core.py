@@ -2,8 +2,9 @@
 
 After AlphaStar (Vinyals et al., Nature 2019, and its published pseudocode):
 
-* **players**: scripted bots, frozen snapshots (weights that never change) and learning agents
-  (``main``, exploiters) whose weights the learners broadcast;
+* **players**: scripted bots, frozen policy files (``opponents.pool``: checkpoints or exported
+  files that every actor loads itself), frozen snapshots (weights that never change, held by
+  the league) and learning agents (``main``, exploiters) whose weights the learners broadcast;
 * **payoff table**: wins / draws / losses per ordered pair ``(a, b)`` from ``a``'s side; every
   reported match is folded into both ``(a, b)`` and ``(b, a)``. Raw integer counts (what
   ratings and ``zenrl league status`` read) and decayed counts (each new match of a pair
@@ -34,9 +35,10 @@ import numpy as np
 
 from zenrl.common.config import LeagueConfig
 
-#: the kinds of player
-BOT, SNAPSHOT, LEARNER = "bot", "snapshot", "learner"
-KINDS = (BOT, SNAPSHOT, LEARNER)
+#: the kinds of player: a scripted bot of the env; a policy file of ``opponents.pool`` that each
+#: actor loads itself (``frozen``); a snapshot whose weights the league holds; a learning agent
+BOT, FROZEN, SNAPSHOT, LEARNER = "bot", "frozen", "snapshot", "learner"
+KINDS = (BOT, FROZEN, SNAPSHOT, LEARNER)
 #: match outcomes from the reporting side
 WIN, DRAW, LOSS = 1, 0, -1
 #: version of the persisted state's layout
@@ -181,7 +183,7 @@ class League:
     served weights of a learning agent (``served``) move to its newest only every
     ``live_refresh_s``, so that actors that cache by (id, version) fetch them that often."""
 
-    def __init__(self, cfg: LeagueConfig, now: float) -> None:
+    def __init__(self, cfg: LeagueConfig, now: float, frozen: Iterable[str] = ()) -> None:
         self.cfg = cfg
         self.players: dict[str, Player] = {}
         self.payoff = Payoff(cfg.decay)
@@ -196,6 +198,8 @@ class League:
         self.results_total = 0
         for b in cfg.bots:
             self.players[b] = Player(b, BOT, BOT, now)
+        for f in frozen:
+            self.players[f] = Player(f, FROZEN, FROZEN, now)
         for aid, a in cfg.agents.items():
             self.players[aid] = Player(aid, LEARNER, a.role, now, last_snapshot_at=now, reset_at=now)
             self.since[aid] = {}
@@ -209,8 +213,8 @@ class League:
         return [p.id for p in self.players.values() if p.kind == LEARNER]
 
     def frozen(self) -> list[str]:
-        """Bots and snapshots, in the order they joined."""
-        return [p.id for p in self.players.values() if p.kind in (BOT, SNAPSHOT)]
+        """Bots, frozen files and snapshots, in the order they joined."""
+        return [p.id for p in self.players.values() if p.kind in (BOT, FROZEN, SNAPSHOT)]
 
     def available(self, pid: str) -> bool:
         """Whether ``pid`` can be played now: a bot always, a snapshot with its weights, a
@@ -218,7 +222,7 @@ class League:
         p = self.players.get(pid)
         if p is None:
             return False
-        if p.kind == BOT:
+        if p.kind in (BOT, FROZEN):
             return True
         if p.kind == SNAPSHOT:
             return pid in self.weights
@@ -317,7 +321,7 @@ class League:
     def weights_of(self, pid: str) -> LearnerWeights | None:
         """The weights served for ``pid`` (a snapshot's, or a learning agent's served copy)."""
         p = self.players.get(pid)
-        if p is None or p.kind == BOT:
+        if p is None or p.kind in (BOT, FROZEN):
             return None
         return self.weights.get(pid) if p.kind == SNAPSHOT else self.served.get(pid)
 
@@ -419,20 +423,23 @@ class League:
 
     @classmethod
     def from_state(cls, cfg: LeagueConfig, state: Mapping[str, Any], weights: Mapping[str, LearnerWeights],
-                   now: float) -> "League":
+                   now: float, frozen: Iterable[str] = ()) -> "League":
         """The league saved in ``state`` with snapshot ``weights`` (a snapshot whose weights are
-        missing is dropped). Players the config names that the state lacks (a bot or agent
-        added since) join; learning agents serve nothing until their learners are heard again."""
+        missing is dropped, so is a bot, frozen file or agent the config no longer names, with
+        their table rows). Players the config names that the state lacks join; learning agents
+        serve nothing until their learners are heard again."""
         if state.get("format") != STATE_FORMAT:
             raise ValueError(f"league state format {state.get('format')!r} is not {STATE_FORMAT}")
-        lg = cls(cfg, now)
+        frozen = list(frozen)
+        lg = cls(cfg, now, frozen)
         saved = [Player.from_dict(d) for d in state.get("players", [])]
         fresh = lg.players
         lg.players = {}
         for p in saved:
             if p.kind == SNAPSHOT and p.id not in weights:
                 continue
-            if p.kind == LEARNER and p.id not in cfg.agents:
+            if (p.kind == LEARNER and p.id not in cfg.agents) or (p.kind == BOT and p.id not in cfg.bots) \
+                    or (p.kind == FROZEN and p.id not in frozen):
                 continue
             lg.players[p.id] = p
         for pid, p in fresh.items():

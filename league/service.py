@@ -42,7 +42,7 @@ from zenrl.common.errors import ProtocolError
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.roles import Cadence, RoleLoop, Supervisor
 from zenrl.common.transport import Node
-from zenrl.league.core import BOT, LEARNER, SNAPSHOT, League, LearnerWeights, agent_run_id
+from zenrl.league.core import BOT, FROZEN, LEARNER, SNAPSHOT, League, LearnerWeights, agent_run_id
 from zenrl.league.store import LeagueStore
 
 log = logging.getLogger(__name__)
@@ -70,8 +70,9 @@ class LeagueService:
         self.max_bytes = min(cfg.transport.max_message_bytes, self.lcfg.max_weights_bytes)
         self.store = LeagueStore(directory or league_dir(cfg, run_id), self.max_bytes)
         now = clock()
-        loaded = self.store.load(self.lcfg, now)
-        self.league = loaded if loaded is not None else League(self.lcfg, now)
+        frozen = list(cfg.opponents.pool)  # policy files every actor loads itself
+        loaded = self.store.load(self.lcfg, now, frozen)
+        self.league = loaded if loaded is not None else League(self.lcfg, now, frozen)
         self.restored = loaded is not None
         if self.restored:
             log.info("league restored from %s: %d players, %d results", self.store.dir, len(self.league.players),
@@ -199,8 +200,8 @@ class LeagueService:
             return "unknown_opponent", f"{m.opponent!r} is not a player of this league (a snapshot that left?)"
         if m.generation > p.generation:
             return "generation", f"generation {m.generation} of {m.player} is ahead of the league's {p.generation}"
-        if o.kind == BOT and m.opponent_version != -1:
-            return "opponent_version", f"bot {m.opponent} has no version, got {m.opponent_version}"
+        if o.kind in (BOT, FROZEN) and m.opponent_version != -1:
+            return "opponent_version", f"{o.kind} {m.opponent} has no version, got {m.opponent_version}"
         if o.kind == SNAPSHOT and m.opponent_version != o.version:
             return "opponent_version", f"snapshot {m.opponent} is version {o.version}, got {m.opponent_version}"
         if o.kind == LEARNER:

@@ -90,7 +90,7 @@ class LeagueStore:
                     f.unlink(missing_ok=True)
                     self._written.discard(f.stem)
 
-    def load(self, cfg: LeagueConfig, now: float) -> League | None:
+    def load(self, cfg: LeagueConfig, now: float, frozen: list[str] | tuple[str, ...] = ()) -> League | None:
         """The league saved here, or None when there is no state yet. An unreadable state
         file is an error (:class:`ValueError`): a league must not silently start over."""
         path = self.dir / STATE_FILE
@@ -114,4 +114,4 @@ class LeagueStore:
                 continue
             weights[pid] = w
             self._written.add(pid)
-        return League.from_state(cfg, state, weights, now)
+        return League.from_state(cfg, state, weights, now, frozen)

@@ -201,3 +201,34 @@ def test_only_the_first_reset_waits_for_the_league(tmp_path):
         ch(pool, rng)
     assert ch(pool, rng) is not None and clock.t == t0  # later resets fall back at once
     assert ch.counts["fallback"] == 1
+
+
+def test_a_frozen_file_of_the_pool_is_a_league_player(tmp_path):
+    from zenrl.common.opponents import Opponent
+
+    svc, wire, ch, clock = setup(tmp_path, **{"selfplay_share": 0.0})
+    assert "champ" not in svc.league.players  # no opponents.pool in this config
+    over = ["league.enabled=true", "league.bots=[cheese]", "league.run_id=lg", "league.player=main",
+            "league.first_wait_s=0", "league.selfplay_share=0", "opponents.pool.champ.path=/models/champ.pt"]
+    cfg = load_config(None, over)
+    wire = Wire()
+    svc = LeagueService(cfg, wire, "lg", directory=tmp_path / "f", clock=lambda: 1000.0)
+    svc.start(wire, None)
+    assert svc.league.players["champ"].kind == "frozen"
+    assert svc.league.distribution("main") == pytest.approx({"cheese": 0.5, "champ": 0.5})
+    ch = LeagueChooser(cfg, wire, "a0", net, clock=Clock())
+    pool = OpponentPool(3)
+    pool.add(Opponent("champ", "exported", 1.0, player=lambda obs: 0))  # what build_pool loaded
+    rng = np.random.default_rng(0)
+    got = set()
+    for _ in range(30):
+        ch(pool, rng)
+        wire.deliver()
+        got.add(ch(pool, rng))
+    assert "champ" in got
+    ch.report(MatchResult("champ", "red", "draw", 3, 3))
+    assert svc.league.payoff.wdl("main", "champ") == (0, 1, 0)
+    # a result claiming a version for a frozen file is refused
+    bad = P.MatchResult("a0", "main", 0, 1, "champ", 4, 1).encode()
+    wire.subs[P.LeagueKeys("lg").results_all]("zenrl/lg/league/results/a0", bad)
+    assert svc.rejects.counts["opponent_version"] == 1

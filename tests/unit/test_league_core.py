@@ -242,3 +242,17 @@ def test_league_config_is_checked():
     assert c.league.main_id == "main" and c.league.pfsp_weighting == "var"
     kinds = {p.kind for p in League(c.league, 0.0).players.values()}
     assert kinds == {BOT, LEARNER}
+
+
+def test_frozen_files_are_players_and_leave_with_the_config():
+    c = cfg()
+    lg = League(c, now=0.0, frozen=["champ"])
+    assert lg.players["champ"].kind == "frozen" and lg.available("champ") and lg.weights_of("champ") is None
+    assert set(lg.distribution("main")) == {"cheese", "teriyaki", "champ"}
+    lg.record("main", "champ", 1)
+    state = json.loads(json.dumps(lg.to_state()))
+    kept = League.from_state(c, state, {}, now=1.0, frozen=["champ"])
+    assert kept.payoff.wdl("main", "champ") == (1, 0, 0)
+    gone = League.from_state(cfg(bots=["cheese"]), state, {}, now=1.0)
+    assert "champ" not in gone.players and "teriyaki" not in gone.players
+    assert ("main", "champ") not in gone.payoff.counts

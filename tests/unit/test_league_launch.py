@@ -41,6 +41,12 @@ def test_check_league_needs_apex_and_a_match_env_with_those_bots():
         check_league(load_config(None, ["league.enabled=true", "algo=a3c"]))
     with pytest.raises(ConfigError, match="match env"):
         check_league(load_config(None, ["league.enabled=true"]))
+    with pytest.raises(ConfigError, match="opponents.pool.main-best: a league player's name"):
+        check_league(load_config(None, ["league.enabled=true", "env.id=zenrl/BurgerWar-v0",
+                                        "opponents.pool.main-best.bot=cheese"]))
+    with pytest.raises(ConfigError, match="opponents.pool.cheese: the name is taken"):
+        check_league(load_config(None, ["league.enabled=true", "env.id=zenrl/BurgerWar-v0",
+                                        "opponents.pool.cheese.bot=cheese"]))
     with pytest.raises(ConfigError, match="league.bots: 'robocop'"):
         check_league(load_config(None, ["league.enabled=true", "env.id=zenrl/BurgerWar-v0",
                                         "league.bots=[cheese, robocop]"]))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +63,8 @@ def agent_configs(cfg: RunConfig, run_id: str) -> dict[str, RunConfig]:
 
 def check_league(cfg: RunConfig) -> None:
     """What a league run needs, checked before anything starts: Ape-X, a match env whose bots
-    include every ``league.bots`` name, agent configs that validate."""
+    include every ``league.bots`` name, ``opponents.pool`` names (frozen players of the league)
+    that are valid player ids and clash with no bot or agent, agent configs that validate."""
     if cfg.algo != "apex":
         raise ConfigError(f"league.enabled needs algo apex (the league's actors are Ape-X actors), got {cfg.algo!r}")
     from zenrl.common.env_factory import make_env
@@ -78,6 +80,13 @@ def check_league(cfg: RunConfig) -> None:
                 raise ConfigError(f"league.bots: {b!r} is no bot of {cfg.env.id}: {e}") from None
     finally:
         env.close()
+    taken = set(cfg.league.bots) | set(cfg.league.agents)
+    for name in cfg.opponents.pool:
+        if name in taken:
+            raise ConfigError(f"opponents.pool.{name}: the name is taken by a league bot or agent")
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_\-]{0,31}", name) or any(name.startswith(f"{a}-") for a in cfg.league.agents):
+            raise ConfigError(f"opponents.pool.{name}: a league player's name is 1-32 letters, digits, '_' or '-', "
+                              "starting with a letter and not with an agent's name and '-' (its snapshots' names)")
     agent_configs(cfg, cfg.run_id or "x" * 20)
 
 
