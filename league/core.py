@@ -415,9 +415,10 @@ class League:
         return events
 
     # -- persistence -------------------------------------------------------------------------------
-    def to_state(self) -> dict[str, Any]:
-        """JSON-ready state (snapshot weights excluded: stored by the caller, one file each)."""
-        return {"format": STATE_FORMAT, "players": [p.to_dict() for p in self.players.values()],
+    def to_state(self, now: float | None = None) -> dict[str, Any]:
+        """JSON-ready state (snapshot weights excluded: stored by the caller, one file each);
+        ``now``: when it is saved (a restored league's timers skip the time it was down)."""
+        return {"format": STATE_FORMAT, "saved_at": now, "players": [p.to_dict() for p in self.players.values()],
                 "payoff": self.payoff.to_state(), "since": self.since, "results_total": self.results_total,
                 "stale_updates": self._stale_updates}
 
@@ -435,7 +436,11 @@ class League:
         saved = [Player.from_dict(d) for d in state.get("players", [])]
         fresh = lg.players
         lg.players = {}
+        # the snapshot and reset timers count the league's running time: skip the downtime
+        down = max(0.0, now - float(state["saved_at"])) if state.get("saved_at") is not None else 0.0
         for p in saved:
+            p.last_snapshot_at += down
+            p.reset_at += down
             if p.kind == SNAPSHOT and p.id not in weights:
                 continue
             if (p.kind == LEARNER and p.id not in cfg.agents) or (p.kind == BOT and p.id not in cfg.bots) \

@@ -157,7 +157,7 @@ class LeagueService:
 
     def save(self) -> None:
         with self.lock:
-            self.store.save(self.league)
+            self.store.save(self.league, self.clock())
 
     def close(self) -> None:
         """Nothing is pending: results are folded in as they come (the role loop saves last)."""

@@ -74,14 +74,14 @@ class LeagueStore:
     def snapshot_path(self, pid: str) -> Path:
         return self.dir / SNAPSHOT_DIR / f"{P.check_name('player', pid)}.msgpack"
 
-    def save(self, league: League) -> None:
+    def save(self, league: League, now: float | None = None) -> None:
         """Every snapshot's weights not yet on disk, then the state; files of snapshots that
         left the league are deleted after the state no longer names them."""
         for pid, p in league.players.items():
             if p.kind == SNAPSHOT and pid not in self._written and pid in league.weights:
                 write_atomic(self.snapshot_path(pid), encode_weights(pid, league.weights[pid], self.max_bytes))
                 self._written.add(pid)
-        write_atomic(self.dir / STATE_FILE, json.dumps(league.to_state()).encode())
+        write_atomic(self.dir / STATE_FILE, json.dumps(league.to_state(now)).encode())
         keep = {f"{pid}.msgpack" for pid, p in league.players.items() if p.kind == SNAPSHOT}
         snap_dir = self.dir / SNAPSHOT_DIR
         if snap_dir.is_dir():

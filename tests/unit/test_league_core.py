@@ -256,3 +256,16 @@ def test_frozen_files_are_players_and_leave_with_the_config():
     gone = League.from_state(cfg(bots=["cheese"]), state, {}, now=1.0)
     assert "champ" not in gone.players and "teriyaki" not in gone.players
     assert ("main", "champ") not in gone.payoff.counts
+
+
+def test_timers_skip_the_time_the_league_was_down():
+    c = cfg(snapshot_interval_s=100, exploiter_reset_s=200)
+    lg = League(c, now=0.0)
+    lg.hear_weights("main", weights(1), now=0.0)
+    lg.hear_weights("exploiter", weights(1), now=0.0)
+    state = json.loads(json.dumps(lg.to_state(now=60.0)))  # saved 60 s in, then down for 1000 s
+    back = League.from_state(c, state, {}, now=1060.0)
+    back.hear_weights("main", weights(2), now=1060.0)
+    back.hear_weights("exploiter", weights(2), now=1060.0)
+    assert back.snapshot_due("main", 1099.0) is None and back.snapshot_due("main", 1100.0) == "timer"
+    assert back.reset_due("exploiter", 1199.0) is None and back.reset_due("exploiter", 1200.0) == "timer"
