@@ -289,8 +289,11 @@ def cmd_status(args: argparse.Namespace) -> int:
     cfg = resolve(args)
     if not cfg.run_id:
         raise ConfigError("which run? zenrl status runs/<run-id> (a run of zenrl run), or --run-id ID --router EP")
+    # a league run: its agents' processes run under <run>.<agent> (their configs are in agents/)
+    agents = sorted(p.stem for p in (run_dir / "agents").glob("*.yaml")) if run_dir is not None else []
     return status(cfg.transport.router or "", cfg.run_id, min(cfg.transport.connect_timeout_s, 5.0),
-                  cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait)
+                  cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait,
+                  sub_runs=[f"{cfg.run_id}.{a}" for a in agents])
 
 
 def _alive(pid: object) -> bool:

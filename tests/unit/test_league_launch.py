@@ -93,14 +93,16 @@ def test_status_of_a_stopped_run_reads_the_saved_league(tmp_path):
     from zenrl.league.store import LeagueStore
     from zenrl.launcher.league_status import saved_table
 
-    cfg = load_config(None, ["league.enabled=true", "league.bots=[cheese]"])
+    cfg = load_config(None, ["league.enabled=true", "league.bots=[cheese]", "opponents.pool.champ.path=x.pt"])
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
     assert saved_table(tmp_path) is None
-    lg = League(cfg.league, 0.0)
+    lg = League(cfg.league, 0.0, frozen=["champ"])
     lg.record("main", "cheese", 1)
+    lg.record("main", "champ", 0)
     lg.record("exploiter", "main", -1)
     LeagueStore(tmp_path / "league", 1 << 20).save(lg)
     t = saved_table(tmp_path)
-    assert t.values["saved"] and t.values["results_total"] == 2
+    assert t.values["saved"] and t.values["results_total"] == 3
     rows = {r["id"]: r for r in rows_of(t)}
     assert rows["cheese"]["vs_main"] == [1, 0, 0] and rows["exploiter"]["vs_main"] == [1, 0, 0]
+    assert rows["champ"]["kind"] == "frozen" and rows["champ"]["vs_main"] == [0, 1, 0]

@@ -73,7 +73,8 @@ def saved_table(run_dir: Path) -> P.LeagueTable | None:
         cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
     except (OSError, yaml.YAMLError):
         return None
-    lg = LeagueStore(run_dir / "league", cfg.league.max_weights_bytes).load(cfg.league, time.time())
+    lg = LeagueStore(run_dir / "league", cfg.league.max_weights_bytes).load(cfg.league, time.time(),
+                                                                            list(cfg.opponents.pool))
     return None if lg is None else table_message(lg, {"saved": True})
 
 
