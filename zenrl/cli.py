@@ -48,10 +48,10 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
                 "env", "transport", "actor.num_actors"),
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
-              "env", "transport", "learner.gamma"),
+              "env", "transport", "learner.gamma", "league"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
-    "league": ("run_id", "runs_dir", "seed", "league", "transport"),
+    "league": ("run_id", "runs_dir", "seed", "league", "opponents.pool", "transport"),
 }
 
 
