@@ -145,8 +145,9 @@ class LeagueChooser:
             return
         if rep.status != "ok":
             self.counts[f"reply_{rep.status}"] += 1
-            if rep.status == "unknown":
-                log.error("the league does not know player %s: %s", self.player, rep.reason)
+            if rep.status == "unknown" and self.counts["reply_unknown"] == 1:  # once: the config is wrong
+                log.error("the league does not know player %s: %s; playing the env's own opponents",
+                          self.player, rep.reason)
             return
         if self.generation is None:
             self.generation = rep.generation
