@@ -368,6 +368,8 @@ def _round_robin(args: argparse.Namespace) -> int:
 
     from zenrl import tools
 
+    if args.policy != "greedy":
+        raise ZenrlError("--round-robin plays greedy policies only (no --policy sample)")
     players = [o.strip() for o in args.round_robin.split(",") if o.strip()]
     if args.checkpoint:
         players.insert(0, args.checkpoint)

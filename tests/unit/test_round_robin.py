@@ -64,6 +64,8 @@ def test_round_robin_cli_and_its_errors(players, tmp_path, capsys):
     assert {r["player"]: r["elo"] for r in last["ratings"]}["cheese"] == 0
     assert "round robin" in out and "Elo" in out
     assert len(json.loads(js.read_text())["results"]) == 6
+    assert cli_main(["evaluate", "--round-robin", f"{players['a']},cheese", "--policy", "sample"]) == 2
+    assert "greedy policies only" in capsys.readouterr().err
     with pytest.raises(ZenrlError, match="at least one policy file"):
         tools.round_robin(["cheese", "waypoint"], matches=1, progress=False)
     with pytest.raises(ZenrlError, match="exported TorchScript policy.*--exported"):
