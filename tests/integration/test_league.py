@@ -5,11 +5,15 @@ answers PFSP-weighted opponents (empirical frequencies against its distribution)
 result is counted and rejected without changing the table, and a restarted league comes back
 with its state."""
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import yaml
 
-from tests.conftest import wait_until
+from tests.conftest import ROOT, wait_until
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
 from zenrl.common.networks import QNetwork, arch_fingerprint, num_actions, obs_spec, params_to_arrays
@@ -79,6 +83,14 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
         # both sides of each pair hold the same matches
         assert wdl(t, "main", "cheese") == wdl(t, "cheese", "main")[::-1]
         assert wdl(t, "exploiter", "main") == wdl(t, "main", "exploiter")[::-1]
+        # zenrl league status, as a user runs it
+        out = subprocess.run([sys.executable, "-m", "zenrl.cli", "league", "status", "--run-id", run_id, "--router",
+                              router, "--json"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+        assert out.returncode == 0, out.stderr[-2000:]
+        shown = {r["id"]: r for r in json.loads(out.stdout.strip().splitlines()[-1])["players"]}
+        assert set(shown) == {"cheese", "teriyaki", "main", "exploiter"}
+        assert shown["main"]["games"] >= 7 and "elo" in shown["main"] and shown["exploiter"]["vs_main"]
+        assert sum(r["pfsp"] for r in shown.values()) == pytest.approx(1.0)
         for name in ("main-actor", "exploiter-actor"):
             p = next(p for n, p in procs.procs if n == name)
             p.terminate()
