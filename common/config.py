@@ -212,6 +212,72 @@ class SelfPlayConfig(_Section):
     checkpoint_dir: Optional[str] = Field(None, description="Where snapshots are read from (default: <runs_dir>/<run_id>/checkpoints).")
 
 
+class LeagueAgentConfig(_Section):
+    """One learning agent of a league run: its own replay, learner and actors (``zenrl run``)."""
+
+    role: Literal["main", "exploiter"] = Field("main", description="main: plays PFSP over every frozen player plus self-play; exploiter: plays only the current main agent and is reset periodically.")
+    num_actors: int = Field(1, ge=1, le=64, description="Actor processes of this agent.")
+    envs_per_actor: int = Field(8, ge=1, le=256, description="Envs per actor process of this agent.")
+    overrides: dict[str, Any] = Field(default_factory=dict, description="Options set for this agent's processes only, as {'section.field': value} (e.g. learner.lr).")
+
+
+def _default_agents() -> dict[str, "LeagueAgentConfig"]:
+    return {"main": LeagueAgentConfig(role="main", num_actors=2, envs_per_actor=8),
+            "exploiter": LeagueAgentConfig(role="exploiter", num_actors=1, envs_per_actor=8)}
+
+
+class LeagueConfig(_Section):
+    """A league of match players (docs/burgerwar.md, "League"): the league service holds the
+    players and the payoff table and answers each actor's request for its next opponent."""
+
+    enabled: bool = Field(False, description="zenrl run starts the league service and one replay + learner + actors per agent in league.agents (match envs only).")
+    agents: dict[str, LeagueAgentConfig] = Field(default_factory=_default_agents, description="The learning agents by player id, each {role: main|exploiter, num_actors, envs_per_actor, overrides: {'section.field': value}}: exactly one with role main, any number of exploiters.")
+    bots: list[str] = Field(default_factory=lambda: ["cheese", "teriyaki", "clubhouse", "waypoint"], description="Scripted bots that are players of the league (the env's opponent names).")
+    selfplay_share: float = Field(0.35, ge=0, le=1, description="Main agent: share of its matches against its own current weights; the rest is PFSP over the frozen players.")
+    pfsp_weighting: Literal["hard", "var"] = Field("hard", description="PFSP weighting of an opponent the main agent beats with probability x: hard (1-x)^p, var x(1-x).")
+    pfsp_p: float = Field(2.0, gt=0, le=100, description="Exponent p of the hard weighting.")
+    prior_win_rate: float = Field(0.5, ge=0, le=1, description="Win rate assumed for a pair before it has played (a prior worth prior_games matches).")
+    prior_games: float = Field(1.0, gt=0, description="Weight of the prior, in matches, in every PFSP win rate.")
+    decay: float = Field(0.99, gt=0, le=1, description="The win rates PFSP uses forget: each new match of a pair multiplies its earlier counts by this (the raw counts are kept too).")
+    snapshot_interval_s: float = Field(600.0, gt=0, description="A learning agent's current weights join the league as a frozen snapshot at least this often.")
+    min_snapshot_interval_s: float = Field(120.0, ge=0, description="... and sooner, once at least this long after its last one, when its win rate since then passes snapshot_win_rate.")
+    snapshot_win_rate: float = Field(0.7, gt=0, le=1, description="Main agent: win rate against the league since its last snapshot that adds a snapshot early.")
+    min_games: int = Field(30, ge=1, description="Matches since the last snapshot or reset before a win-rate rule may fire.")
+    exploiter_reset_s: float = Field(900.0, gt=0, description="An exploiter is reset (fresh weights, empty replay) at least this often.")
+    exploiter_win_rate: float = Field(0.7, gt=0, le=1, description="An exploiter whose win rate against the main agent since its reset passes this joins the league as a snapshot and is reset.")
+    exploiter_snapshot_on_timeout: bool = Field(True, description="An exploiter reset on the timer also leaves a snapshot in the league.")
+    max_snapshots: int = Field(40, ge=1, le=1000, description="Frozen snapshots kept (the oldest is dropped with its table rows).")
+    live_refresh_s: float = Field(30.0, gt=0, description="How often the weights of a learning agent served as an opponent (self-play, the exploiters' target) are refreshed.")
+    opponent_epsilon: float = Field(0.05, ge=0, le=1, description="Random-action probability of a policy opponent in training matches.")
+    prefetch: int = Field(8, ge=1, le=64, description="Opponent assignments each actor keeps requested ahead, so that a reset never waits for the league.")
+    first_wait_s: float = Field(10.0, ge=0, le=120, description="An actor's first reset waits at most this long for the league's first assignment (later resets never wait: they fall back to the last opponent or the env's bots).")
+    save_interval_s: float = Field(10.0, gt=0, description="The league writes its state this often (and on stop, and at once when a player joins or is reset).")
+    stats_interval_s: float = Field(2.0, gt=0, description="How often the league publishes its stats.")
+    max_weights_bytes: int = Field(64 * 1024 * 1024, ge=1024, le=1 << 30, description="Largest weights the league accepts from a learner or serves.")
+    run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Set by zenrl run for an agent's processes: the league's run id (its keys zenrl/<run_id>/league/...).")
+    player: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Set by zenrl run for an agent's processes: the learning player they train (a key of agents); actors then take their opponents from the league.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "LeagueConfig":
+        mains = [k for k, a in self.agents.items() if a.role == "main"]
+        if len(mains) != 1:
+            raise ValueError(f"league.agents must hold exactly one agent with role main, got {mains}")
+        ids = list(self.agents) + list(self.bots)
+        for i in ids:
+            if not isinstance(i, str) or not re.match(r"^[A-Za-z][A-Za-z0-9_\-]{0,31}$", i):
+                raise ValueError(f"league player id {i!r} must be 1-32 characters of [A-Za-z0-9_-], starting with a letter")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"league.agents and league.bots share a player id: {ids}")
+        if self.player is not None and self.player not in self.agents:
+            raise ValueError(f"league.player {self.player!r} is not one of league.agents {sorted(self.agents)}")
+        return self
+
+    @property
+    def main_id(self) -> str:
+        """The player id of the main agent."""
+        return next(k for k, a in self.agents.items() if a.role == "main")
+
+
 class OpponentSpec(_Section):
     """One named match opponent of ``opponents.pool``: a scripted ``bot`` or a frozen policy
     read from ``path``."""
@@ -291,6 +357,7 @@ class RunConfig(_Section):
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
     opponents: OpponentsConfig = Field(default_factory=OpponentsConfig)
     r2d2: R2D2Config = Field(default_factory=R2D2Config)
+    league: LeagueConfig = Field(default_factory=LeagueConfig)
 
     @field_validator("cpu_placement", mode="before")
     @classmethod

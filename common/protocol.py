@@ -1037,3 +1037,205 @@ class Unroll(Message):
                 raise ProtocolError("behaviour_logits", f"must be float32, got {lg.dtype.name}", "dtype")
             if not np.isfinite(lg).all():
                 raise ProtocolError("behaviour_logits", "contains NaN or Inf", "nonfinite")
+
+
+# --------------------------------------------------------------------------------------------
+# League (``zenrl league``, docs/protocol.md "League"): keys under ``zenrl/<league run>/league/``
+# --------------------------------------------------------------------------------------------
+#: Largest |version| a league message may carry (fits a signed int64).
+MAX_LEAGUE_INT = (1 << 63) - 1
+#: Largest score a match result may report (the Burger War match has 23 points at most).
+MAX_MATCH_SCORE = 1000
+#: Kinds of league player.
+LEAGUE_KINDS = ("bot", "frozen", "snapshot", "learner")
+
+
+class LeagueKeys:
+    """Key expressions of a league (the run id of ``zenrl league``, which for ``zenrl run`` is
+    the launch's own run id; each learning agent's processes have a run id of their own).
+
+    ================================  ===========  =================================================
+    key                               kind         message
+    ================================  ===========  =================================================
+    ``league/opponent``               queryable    :class:`OpponentRequest` -> :class:`OpponentReply`
+    ``league/weights``                queryable    :class:`PlayerWeightsRequest` -> :class:`PlayerWeights`
+    ``league/table``                  queryable    (empty) -> :class:`LeagueTable`
+    ``league/results/<actor>``        put          :class:`MatchResult`     actor -> league
+    ================================  ===========  =================================================
+    """
+
+    def __init__(self, run_id: str) -> None:
+        self.run_id = check_name("run_id", run_id)
+        self.prefix = f"zenrl/{run_id}/league"
+
+    @property
+    def opponent(self) -> str:
+        return f"{self.prefix}/opponent"
+
+    @property
+    def weights(self) -> str:
+        return f"{self.prefix}/weights"
+
+    @property
+    def table(self) -> str:
+        return f"{self.prefix}/table"
+
+    def results(self, actor_id: str) -> str:
+        return f"{self.prefix}/results/{check_name('actor_id', actor_id)}"
+
+    @property
+    def results_all(self) -> str:
+        return f"{self.prefix}/results/*"
+
+
+def _league_int(name: str, v: int, lo: int = -1) -> None:
+    if not lo <= v <= MAX_LEAGUE_INT:
+        raise ProtocolError(name, f"{v} is outside {lo}..2^63-1", "field")
+
+
+@dataclass(frozen=True)
+class OpponentRequest(Message):
+    """Actor -> league (query): the next opponent of learning player ``player``."""
+
+    TYPE: ClassVar[str] = "opponent_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"player": "name", "actor_id": "name"}
+    player: str
+    actor_id: str
+
+
+@dataclass(frozen=True)
+class OpponentReply(Message):
+    """League -> actor. ``status`` "ok": play ``opponent`` (``kind`` "bot": the env's bot of that
+    name; "snapshot" / "learner": a policy whose weights ``version`` the ``league/weights``
+    queryable serves); ``generation``: the requesting player's (an actor reports it back with
+    each result). "unknown": ``player`` is no learning agent of this league; "none": nobody can
+    be played yet (fall back to a bot); ``reason`` says why. ``kind`` "frozen": the entry of
+    that name in the actor's own ``opponents.pool`` (a policy file it loaded itself)."""
+
+    TYPE: ClassVar[str] = "opponent_reply"
+    SCHEMA: ClassVar[dict[str, str]] = {"status": "str", "player": "name", "generation": "uint",
+                                        "opponent": "str", "kind": "str", "version": "int", "reason": "str"}
+    status: str
+    player: str
+    generation: int = 0
+    opponent: str = ""
+    kind: str = ""
+    version: int = -1
+    reason: str = ""
+
+    def _validate(self) -> None:
+        if self.status not in ("ok", "unknown", "none"):
+            raise ProtocolError("status", f"{self.status!r} is not ok, unknown or none", "field")
+        _league_int("generation", self.generation, 0)
+        _league_int("version", self.version)
+        if self.status == "ok":
+            check_name("opponent", self.opponent)
+            if self.kind not in LEAGUE_KINDS:
+                raise ProtocolError("kind", f"{self.kind!r} is not one of {list(LEAGUE_KINDS)}", "field")
+
+
+@dataclass(frozen=True)
+class PlayerWeightsRequest(Message):
+    """Actor -> league (query): the weights of policy player ``player`` at ``version``."""
+
+    TYPE: ClassVar[str] = "player_weights_request"
+    SCHEMA: ClassVar[dict[str, str]] = {"player": "name", "version": "int"}
+    player: str
+    version: int
+
+    def _validate(self) -> None:
+        _league_int("version", self.version)
+
+
+@dataclass(frozen=True)
+class PlayerWeights(Message):
+    """League -> actor: ``status`` "ok" with the network ``params`` (``{name: array}``, finite,
+    the torch ``state_dict`` names) of ``player`` at ``version``, ``arch`` its fingerprint; or
+    "missing" (no such player or version now: ``reason``). Also the file format of a stored
+    snapshot (``runs/<run>/league/snapshots/<id>.msgpack``)."""
+
+    TYPE: ClassVar[str] = "player_weights"
+    SCHEMA: ClassVar[dict[str, str]] = {"status": "str", "player": "name", "version": "int", "updates": "uint",
+                                        "arch": "str", "reason": "str", "params": "arrays?"}
+    status: str
+    player: str
+    version: int = -1
+    updates: int = 0
+    arch: str = ""
+    reason: str = ""
+    params: dict[str, np.ndarray] | None = None
+
+    def _validate(self) -> None:
+        if self.status not in ("ok", "missing"):
+            raise ProtocolError("status", f"{self.status!r} is not ok or missing", "field")
+        _league_int("version", self.version)
+        _league_int("updates", self.updates, 0)
+        if self.status == "ok":
+            if self.params is None:
+                raise ProtocolError("params", "an ok reply needs params", "field")
+            for k, a in self.params.items():
+                if a.dtype.kind == "f" and not np.isfinite(a).all():
+                    raise ProtocolError(f"params.{k}", "contains NaN or Inf", "nonfinite")
+
+
+@dataclass(frozen=True)
+class MatchResult(Message):
+    """Actor -> league: one finished match of learning player ``player`` (its ``generation`` as
+    the league last told this actor, acting with weights ``player_version``; -1 before any)
+    against ``opponent`` (at ``opponent_version``, -1 for a bot); ``outcome`` from ``player``'s
+    side: +1 win, 0 draw, -1 loss; the scores as the judge counted them."""
+
+    TYPE: ClassVar[str] = "match_result"
+    SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "player": "name", "generation": "uint",
+                                        "player_version": "int", "opponent": "name", "opponent_version": "int",
+                                        "outcome": "int", "my_score": "uint", "enemy_score": "uint"}
+    actor_id: str
+    player: str
+    generation: int
+    player_version: int
+    opponent: str
+    opponent_version: int
+    outcome: int
+    my_score: int = 0
+    enemy_score: int = 0
+
+    def _validate(self) -> None:
+        if self.outcome not in (-1, 0, 1):
+            raise ProtocolError("outcome", f"{self.outcome} must be -1 (loss), 0 (draw) or +1 (win)", "field")
+        _league_int("generation", self.generation, 0)
+        _league_int("player_version", self.player_version)
+        _league_int("opponent_version", self.opponent_version)
+        for k in ("my_score", "enemy_score"):
+            if getattr(self, k) > MAX_MATCH_SCORE:
+                raise ProtocolError(k, f"{getattr(self, k)} exceeds {MAX_MATCH_SCORE}", "field")
+
+
+@dataclass(frozen=True)
+class LeagueTable(Message):
+    """League -> ``zenrl league status`` (query reply). ``ids``: the players as a map
+    ``{id: index}`` (join order); ``kinds`` / ``roles`` ``{id: str}``, ``versions`` /
+    ``generations`` ``{id: int}``; ``counts`` int64[N, N, 3]: wins, draws, losses of row
+    player against column player; ``main_pfsp`` ``{id: probability}``: the main agent's
+    current opponent distribution; ``values``: league-wide numbers (results, rejections)."""
+
+    TYPE: ClassVar[str] = "league_table"
+    SCHEMA: ClassVar[dict[str, str]] = {"ids": "map", "kinds": "map", "roles": "map", "versions": "map",
+                                        "generations": "map", "counts": "array", "main_pfsp": "map",
+                                        "values": "map"}
+    ids: dict[str, Any]
+    kinds: dict[str, Any]
+    roles: dict[str, Any]
+    versions: dict[str, Any]
+    generations: dict[str, Any]
+    counts: np.ndarray
+    main_pfsp: dict[str, Any]
+    values: dict[str, Any]
+
+    def _validate(self) -> None:
+        n = len(self.ids)
+        if sorted(v for v in self.ids.values() if type(v) is int) != list(range(n)):
+            raise ProtocolError("ids", "must map the players to 0..N-1", "field")
+        if self.counts.shape != (n, n, 3) or self.counts.dtype.kind not in "iu":
+            raise ProtocolError("counts", f"must be int[{n}, {n}, 3], got {self.counts.dtype.name}{list(self.counts.shape)}", "shape")
+        if self.counts.size and self.counts.min() < 0:
+            raise ProtocolError("counts", "contains negative values", "negative")

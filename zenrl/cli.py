@@ -48,9 +48,10 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
                 "env", "transport", "actor.num_actors"),
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
-              "env", "transport", "learner.gamma"),
+              "env", "transport", "learner.gamma", "league"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
+    "league": ("run_id", "runs_dir", "seed", "league", "opponents.pool", "transport"),
 }
 
 
@@ -188,6 +189,57 @@ def cmd_exporter(args: argparse.Namespace) -> int:
                                                              args.poll_s))
 
 
+def cmd_league(args: argparse.Namespace) -> int:
+    """``zenrl league`` (the league service) or ``zenrl league status``."""
+    if args.action == "status":
+        return _league_status(args)
+    if args.run_dir:
+        raise ConfigError(f"zenrl league: unexpected argument {args.run_dir!r} (did you mean zenrl league status?)")
+    from zenrl.league.service import main
+
+    return _run_role(args, "league", lambda c, r, s: main(c, r, s, args.id))
+
+
+def _league_status(args: argparse.Namespace) -> int:
+    from zenrl.launcher.league_status import league_status
+
+    setup_logging(args.log_level, "status")
+    quiet_zenoh(args.log_level)
+    run_dir = None
+    if args.run_dir:
+        run_dir, running = _running_run_dir(args)
+        if not running:  # a run that stopped: the state its league saved
+            return league_status("", args.run_id or run_dir.name, as_json=args.json, run_dir=run_dir)
+    cfg = resolve(args)
+    if not cfg.run_id:
+        raise ConfigError("which league? zenrl league status runs/<run-id>, or --run-id ID --router EP")
+    return league_status(cfg.transport.router or "", cfg.run_id, min(cfg.transport.connect_timeout_s, 5.0),
+                         cfg.transport.client_config, as_json=args.json, timeout_s=cfg.transport.query_timeout_s)
+
+
+def _running_run_dir(args: argparse.Namespace):
+    """(the run folder ``args.run_dir`` names (a run id typed instead works too), whether its
+    league can be asked): ``args.run_id`` / ``args.router`` filled from its ``launcher.json``;
+    not asked when its launcher is gone and no ``--router`` was given."""
+    from pathlib import Path
+
+    from zenrl.launcher.runfolder import read_launcher_info
+
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir() and (Path("runs") / args.run_dir).is_dir():
+        run_dir = Path("runs") / args.run_dir
+    if not run_dir.is_dir():
+        raise ConfigError(f"no run folder {args.run_dir!r} (give runs/<run-id>)")
+    info = read_launcher_info(run_dir)
+    if not args.run_id:
+        args.run_id = info["run_id"] if info and info.get("run_id") else run_dir.name
+    if not args.router and (info is None or not _alive(info.get("pid"))):
+        return run_dir, False
+    if not args.router and info is not None:
+        args.router = info["router"]
+    return run_dir, True
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     from zenrl.common.transport import install_stop_signals, open_router
     from zenrl.identity import check_router_dev_credentials
@@ -281,8 +333,11 @@ def cmd_status(args: argparse.Namespace) -> int:
     cfg = resolve(args)
     if not cfg.run_id:
         raise ConfigError("which run? zenrl status runs/<run-id> (a run of zenrl run), or --run-id ID --router EP")
+    # a league run: its agents' processes run under <run>.<agent> (their configs are in agents/)
+    agents = sorted(p.stem for p in (run_dir / "agents").glob("*.yaml")) if run_dir is not None else []
     return status(cfg.transport.router or "", cfg.run_id, min(cfg.transport.connect_timeout_s, 5.0),
-                  cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait)
+                  cfg.transport.client_config, run_dir, as_json=args.json, wait_s=args.wait,
+                  sub_runs=[f"{cfg.run_id}.{a}" for a in agents])
 
 
 def _alive(pid: object) -> bool:
@@ -464,6 +519,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--poll-s", type=float, default=1.0, help="how often the liveliness tokens are polled (seconds)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_exporter)
+
+    s = sub.add_parser("league", help="the league service (players, payoff table, PFSP), or `zenrl league status`",
+                       epilog=_options_epilog("league"), formatter_class=fmt)
+    s.add_argument("action", nargs="?", choices=("serve", "status"), default="serve",
+                   help="serve (default): run the league service; status: show a running league's players, "
+                        "ratings and the main agent's opponent distribution")
+    s.add_argument("run_dir", nargs="?", metavar="RUN_DIR",
+                   help="status: runs/<run-id> of a running zenrl run (else give --run-id and --router)")
+    _add_config_args(s)
+    s.add_argument("--id", default="league", help="service id")
+    s.add_argument("--json", action="store_true", help="status: print JSON")
+    s.set_defaults(func=cmd_league)
 
     s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
     s.add_argument("--listen", action="append", help="endpoint to listen on (repeatable)")

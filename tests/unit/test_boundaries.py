@@ -40,3 +40,13 @@ def test_the_replay_imports_only_common():
                                             and not m.startswith(("zenrl.common", "zenrl.replay")))
            for p in _sources("replay")}
     assert not {k: v for k, v in bad.items() if v}, bad
+
+
+def test_the_league_imports_only_common_and_not_zenoh():
+    files = _sources("league")
+    assert files
+    bad = {str(p.relative_to(ROOT)): sorted(m for m in _imports(p)
+                                            if (m.startswith("zenrl.") and not m.startswith(("zenrl.common", "zenrl.league")))
+                                            or m == "zenoh" or m.startswith("zenoh."))
+           for p in files}
+    assert not {k: v for k, v in bad.items() if v}, bad

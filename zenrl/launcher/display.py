@@ -28,6 +28,8 @@ class Progress:
     actor_steps: dict[str, int] = field(default_factory=dict)
     learner: dict[str, Any] = field(default_factory=dict)
     replay: dict[str, Any] = field(default_factory=dict)
+    #: a league run: the league service's last stats
+    league: dict[str, Any] = field(default_factory=dict)
     evals: list[dict[str, Any]] = field(default_factory=list)
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
@@ -107,7 +109,10 @@ class Progress:
                 "train_return_100": round(float(np.mean(self.recent_returns)), 1) if self.recent_returns else None,
                 "eval_return": None if self.last_eval is None else round(self.last_eval, 1),
                 **({"eval_win_rate": round(self.evals[-1]["win_rate"], 3)}
-                   if self.evals and self.evals[-1].get("win_rate") is not None else {})}
+                   if self.evals and self.evals[-1].get("win_rate") is not None else {}),
+                **({f"league_{k.replace('/', '_')}": v for k, v in self.league.items()
+                    if k in ("players", "snapshots", "results_total") or k.startswith("generation/")}
+                   if self.league else {})}
 
 
 def render_table(run_id: str, line: dict[str, Any], stop_reason: str = ""):

@@ -14,7 +14,7 @@ from zenrl.common import protocol as P
 
 #: (stats field holding a running total, unit) per role: the rate is its change per second
 TOTALS = {"actor": ("env_steps", "env steps/s"), "learner": ("updates", "updates/s"),
-          "replay": ("inserted_total", "inserts/s")}
+          "replay": ("inserted_total", "inserts/s"), "league": ("results_total", "results/s")}
 #: the rate a process reports itself, used when it was heard only once
 OWN_RATE = {"learner": "updates_per_s", "replay": "inserts_per_s"}
 
@@ -139,6 +139,8 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
         return size + _rejections(r)
     if role == "actor" and learner_version is not None and r.get("policy_version") is not None:
         return f"lag {learner_version - int(r['policy_version'])} versions"
+    if role == "league" and "players" in r:
+        return f"{r['players']} players, {r.get('snapshots', 0)} snapshots (zenrl league status)"
     if role == "learner" and r.get("policy_lag") is not None:
         return f"policy lag {float(r['policy_lag']):.1f}"
     if role == "evaluator" and r.get("eval_return") is not None:
@@ -148,12 +150,19 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
 
 
 def status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_config: str | None = None,
-           run_dir: Path | None = None, as_json: bool = False, wait_s: float = 3.0) -> int:
-    """Print the live processes of ``run_id`` (table or ``--json``); 1 when none is alive."""
+           run_dir: Path | None = None, as_json: bool = False, wait_s: float = 3.0,
+           sub_runs: list[str] | None = None) -> int:
+    """Print the live processes of ``run_id`` (table or ``--json``); 1 when none is alive.
+    ``sub_runs``: run ids whose processes belong to this run too (a league run's agents,
+    ``<run>.<agent>``): their rows carry ``run`` and their ids are prefixed with the agent."""
     from zenrl.common.transport import Node
 
     with Node(endpoint, connect_timeout_s, config_file=client_config) as node:
         rows = collect(node, run_id, wait_s)
+        for sub in sub_runs or []:
+            for r in collect(node, sub, wait_s):
+                r["run"], r["id"] = sub, f"{sub[len(run_id) + 1:]}:{r['id']}"
+                rows.append(r)
     for r in rows:
         if r["role"] == "evaluator" and r.get("eval_return") is None:
             rec = last_logged_eval(run_dir)
@@ -172,9 +181,10 @@ def status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_co
         t = Table(title=f"zenrl run {run_id} ({endpoint})")
         for col in ("role", "id", "rate", "weights", "detail"):
             t.add_column(col, justify="right" if col == "rate" else "left")
-        lv = next((r.get("version") for r in rows if r["role"] == "learner"), None)
+        lv = {r.get("run"): r.get("version") for r in rows if r["role"] == "learner"}
         for r in rows:
             weights = r.get("version", r.get("policy_version"))
-            t.add_row(r["role"], r["id"], _fmt_rate(r), "-" if weights is None else str(weights), _detail(r, lv))
+            t.add_row(r["role"], r["id"], _fmt_rate(r), "-" if weights is None else str(weights),
+                      _detail(r, lv.get(r.get("run"))))
         Console().print(t)
     return 0 if rows else 1

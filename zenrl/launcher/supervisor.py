@@ -108,6 +108,11 @@ class Child:
     proc: subprocess.Popen | None = None
     restarts: int = 0
     log_path: Path | None = None
+    #: a league agent's process: its own config file and run id (default: the run's)
+    config: Path | None = None
+    run_id: str | None = None
+    #: the league agent it belongs to
+    agent: str | None = None
 
 
 class Launcher:
@@ -144,6 +149,15 @@ class Launcher:
                               self.cfg.learner.torch_threads, usable_cpus())
         self.endpoint = ""
         self._metrics = None
+        #: league runs: each learning agent's resolved config, and the generations applied (resets)
+        self.agents: dict[str, RunConfig] = {}
+        self.applied: dict[str, int] = {}
+        self._league_seen: dict[str, int] = {}
+        if self.cfg.league.enabled:
+            from zenrl.launcher.league_run import agent_configs
+
+            self.agents = agent_configs(self.cfg, self.run_id)
+            self.placement = None  # several learners share the CPUs: left to the OS
 
     def _stop_with(self, reason: str, exit_code: int = 0) -> None:
         """Stop the run for ``reason`` (the first reason given wins)."""
@@ -164,8 +178,8 @@ class Launcher:
         return listen, f"{proto}/{connect_host}:{port}"
 
     def _spawn(self, c: Child, extra: list[str] | None = None) -> None:
-        cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(self.run_dir / "config.yaml"),
-               "--run-id", self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
+        cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(c.config or self.run_dir / "config.yaml"),
+               "--run-id", c.run_id or self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
         # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
         # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
@@ -176,8 +190,30 @@ class Launcher:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         log.debug("started %s (pid %d): %s", c.name, c.proc.pid, " ".join(cmd))
 
+    def _agent_children(self, aid: str, fresh: bool = False) -> list[Child]:
+        """The replay, learner, actors (and, for the main agent, evaluator) of league agent
+        ``aid``, on its own config and run id; ``fresh``: its learner starts from scratch."""
+        acfg = self.agents[aid]
+        conf = self.run_dir / "agents" / f"{aid}.yaml"
+        kw = {"config": conf, "run_id": acfg.run_id, "agent": aid}
+        resume = [] if fresh or not self.resume else ["--auto-resume"]
+        kids = [Child(f"{aid}-replay", "replay", [], **kw), Child(f"{aid}-learner", "learner", resume, **kw)]
+        for i in range(acfg.actor.num_actors):
+            kids.append(Child(f"{aid}-actor-{i}", "actor", ["--id", f"{aid}-actor-{i}", "--slot", str(i)], **kw))
+        if acfg.evaluator.enabled:
+            kids.append(Child(f"{aid}-evaluator", "evaluator", [], **kw))
+        return kids
+
     def _plan(self) -> list[Child]:
         kids = []
+        if self.agents:
+            kids.append(Child("league", "league", []))
+            for aid in self.agents:
+                kids.extend(self._agent_children(aid))
+            if self.exporter_port is not None:
+                host = _split_endpoint(self.cfg.transport.listen[0])[1].strip("[]") or "0.0.0.0"
+                kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port), "--host", host]))
+            return kids
         if self.algorithm.uses_replay:
             kids.append(Child("replay", "replay", []))
         kids.append(Child("learner", "learner", ["--resume"] if self.resume else []))
@@ -208,25 +244,28 @@ class Launcher:
             c.restarts += 1
             log.warning("%s exited with code %s (%s); restarting (%d/%d), log %s", c.name, rc, why, c.restarts,
                         self.max_restarts, c.log_path)
-            self._spawn(c, ["--auto-resume"] if c.role == "learner" and "--resume" not in c.args else None)
+            self._spawn(c, ["--auto-resume"] if c.role == "learner" and not {"--resume", "--auto-resume"} & set(c.args)
+                        else None)
 
-    def _terminate(self) -> None:
+    def _terminate(self, children: list[Child] | None = None, grace_s: float = 20.0) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
-        # the actors to save its checkpoint, so it stops with them (one exit wait instead of two)
-        order = [[c for c in self.children if c.role in ("actor", "evaluator", "learner", "exporter")],
-                 [c for c in self.children if c.role == "replay"]]
+        # the actors to save its checkpoint, so it stops with them (one exit wait instead of two);
+        # the league with the replays, after the actors' last results
+        kids = self.children if children is None else children
+        order = [[c for c in kids if c.role in ("actor", "evaluator", "learner", "exporter")],
+                 [c for c in kids if c.role in ("replay", "league")]]
         for group in order:
             for c in group:
                 if c.proc is not None and c.proc.poll() is None:
                     c.proc.send_signal(signal.SIGTERM)
-            deadline = time.monotonic() + 20
+            deadline = time.monotonic() + grace_s
             for c in group:
                 if c.proc is None:
                     continue
                 try:
                     c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
-                    log.warning("%s did not stop within 20 s; killing it", c.name)
+                    log.warning("%s did not stop within %.0f s; killing it", c.name, grace_s)
                     c.proc.kill()
                     c.proc.wait()
 
@@ -257,6 +296,14 @@ class Launcher:
 
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False))
+        if self.agents:
+            from zenrl.launcher.league_run import read_applied
+
+            (self.run_dir / "agents").mkdir(exist_ok=True)
+            for aid, acfg in self.agents.items():
+                (self.run_dir / "agents" / f"{aid}.yaml").write_text(yaml.safe_dump(acfg.model_dump(mode="json"),
+                                                                                    sort_keys=False))
+            self.applied = read_applied(self.run_dir)
         signal.signal(signal.SIGINT, self._on_signal)
         signal.signal(signal.SIGTERM, self._on_signal)
         listen, self.endpoint = self._endpoints()
@@ -280,6 +327,9 @@ class Launcher:
         self._metrics = MetricsWriter(self.run_dir)
         try:
             k = P.Keys(self.run_id)
+            if self.agents:  # the live figures are the main agent's; the league's stats carry resets
+                k = P.Keys(self.agents[self.cfg.league.main_id].run_id or "")
+                node.subscribe(P.Keys(self.run_id).stats("league", "league"), self._on_league_stats)
             for key in (k.stats_all, k.episodes_all, k.eval):
                 node.subscribe(key, self.progress.on_message)
             self.children = self._plan()
@@ -317,6 +367,7 @@ class Launcher:
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
+                self._apply_resets()
                 self._check_done()
                 if live is not None:
                     live.update(self._table())
@@ -337,6 +388,48 @@ class Launcher:
                 live.stop()
             elif self.cfg.progress:  # the final counters, however short the run
                 log.info("progress %s", json.dumps(self.progress.status_line()))
+
+    # -- league runs -------------------------------------------------------------------------
+    def _on_league_stats(self, key: str, payload: bytes) -> None:
+        from zenrl.common import protocol as P
+
+        try:
+            m = P.Stats.decode(payload)
+        except P.ProtocolError:
+            return
+        seen = {k.split("/", 1)[1]: int(v) for k, v in m.values.items()
+                if k.startswith("generation/") and isinstance(v, int) and not isinstance(v, bool)}
+        with self.progress.lock:
+            self._league_seen.update({a: g for a, g in seen.items() if a in self.agents})
+            self.progress.league = {k: v for k, v in m.values.items() if not k.startswith(("errors/", "rejected_"))}
+
+    def _apply_resets(self) -> None:
+        """Restart an agent afresh whose generation the league moved past the applied one."""
+        from zenrl.launcher.league_run import write_applied
+
+        with self.progress.lock:
+            seen = dict(self._league_seen)
+        for aid, gen in seen.items():
+            applied = self.applied.get(aid)
+            if applied is None:  # first word from the league in this run: nothing to catch up on
+                self.applied[aid] = gen
+                write_applied(self.run_dir, self.applied)
+                continue
+            if gen <= applied or self.stop.is_set():
+                continue
+            log.info("league: %s reset to generation %d: restarting its replay, learner and actors afresh", aid, gen)
+            old = [c for c in self.children if c.agent == aid]
+            self._terminate(old, grace_s=5.0)  # what they hold is discarded: no long wait for a final save
+            import shutil
+
+            shutil.rmtree(self.run_dir / "agents" / (self.agents[aid].run_id or ""), ignore_errors=True)
+            self.children = [c for c in self.children if c.agent != aid]
+            fresh = self._agent_children(aid, fresh=True)
+            for c in fresh:
+                self._spawn(c)
+            self.children.extend(fresh)
+            self.applied[aid] = gen
+            write_applied(self.run_dir, self.applied)
 
     def _table(self):
         return render_table(self.run_id, self.progress.status_line(), self.stop_reason)
@@ -359,7 +452,7 @@ class Launcher:
             solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
         return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
                 "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
-                "replay": p.replay, "evals": evals, "target_return": self.cfg.target_return,
+                "replay": p.replay, **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
                 "solved": solved is not None,
                 "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
                 "restarts": segment["restarts"], "segments": [*self.earlier, segment]}
@@ -374,6 +467,10 @@ def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | N
         rd = Path(resume_dir)
         cfg = cfg.model_copy(update={"run_id": rd.name, "runs_dir": str(rd.parent)})
     check_env(cfg)
+    if cfg.league.enabled:
+        from zenrl.launcher.league_run import check_league
+
+        check_league(cfg)
     if exporter_port is not None and not _port_free("0.0.0.0", exporter_port):
         raise ConfigError(f"--exporter-port {exporter_port}: the port is in use")
     return Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port).run()

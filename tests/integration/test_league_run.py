@@ -1,0 +1,42 @@
+"""`zenrl run` of the league config end to end (slow): the league service and both agents'
+replay, learner and actors run as real processes; main agent snapshots join the league, the
+exploiter plays the main agent and is reset (its processes restarted afresh, its snapshot
+joining), and nothing is left running afterwards."""
+
+import json
+
+import pytest
+
+from tests.conftest import run_zenrl, zenrl_pids
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+MATCH = {"opponents": {"cheese": 1}, "side": "random", "reward": "zero_sum", "control_hz": 5, "action_set": "rich",
+         "match_time": 10.0, "sudden_death_time": 2.0}
+SETS = ("max_wall_s=150", f"env.kwargs={json.dumps(MATCH)}", "evaluator.enabled=false", "replay.min_size=300",
+        "replay.samples_per_insert=null", "learner.batch_size=32", "learner.checkpoint_interval_s=20",
+        "league.agents.main.num_actors=1", "league.agents.main.envs_per_actor=4",
+        "league.agents.exploiter.envs_per_actor=4", "league.snapshot_interval_s=30", "league.min_snapshot_interval_s=20",
+        "league.exploiter_reset_s=60", "league.live_refresh_s=5", "league.save_interval_s=2")
+
+
+def test_league_run_snapshots_and_resets(tmp_path, run_id):
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/burgerwar_league_pfsp.yaml", run_id, *SETS, timeout_s=600)
+    assert p.returncode == 0, (p.stderr[-3000:], logs)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("max_wall_s"), summary["stop_reason"]
+    assert all(v == 0 for v in summary["restarts"].values()), summary["restarts"]
+    state = json.loads((run_dir / "league" / "state.json").read_text())
+    players = {d["id"]: d for d in state["players"]}
+    assert any(d["kind"] == "snapshot" and d["parent"] == "main" for d in players.values()), players
+    gen = players["exploiter"]["generation"]
+    assert gen >= 1, players["exploiter"]
+    assert any(d["kind"] == "snapshot" and d["parent"] == "exploiter" for d in players.values()), players
+    applied = json.loads((run_dir / "league_applied.json").read_text())
+    assert applied["exploiter"] == gen  # zenrl run restarted the exploiter for its last generation
+    assert "reset to generation 1" in p.stderr
+    counts = {(a, b): (w, d, l_) for a, b, w, d, l_ in state["payoff"]["counts"]}
+    assert sum(counts.get(("exploiter", "main"), (0, 0, 0))) >= 1, counts
+    assert sum(sum(v) for (a, _), v in counts.items() if a == "main") >= 4, counts
+    for rid in (run_id, f"{run_id}.main", f"{run_id}.exploiter"):
+        assert not zenrl_pids(rid), zenrl_pids(rid)

@@ -1,0 +1,104 @@
+"""``zenrl run`` of a league config (``league.enabled``): besides the router, the league service
+(``zenrl league``, on the launch's run id) and, for each learning agent of ``league.agents``,
+its own replay, learner and actors on a run id of its own (``<run>.<agent>``: its keys are
+``zenrl/<run>.<agent>/...``, its files ``runs/<run>/agents/<run>.<agent>/``), configured by
+:func:`agent_configs`. Only the main agent has an evaluator (against the env's bots).
+
+An exploiter's reset is carried out here: when the league's stats show a higher
+``generation/<agent>`` than the one applied, that agent's replay, learner and actors are
+stopped, its folder is deleted (checkpoints, weights-version mark, replay log) and they start
+afresh; the applied generations are kept in ``runs/<run>/league_applied.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+from zenrl.common.config import RunConfig, _set_path
+from zenrl.common.errors import ConfigError
+from zenrl.league.core import agent_run_id
+
+log = logging.getLogger("zenrl.launcher")
+
+APPLIED_FILE = "league_applied.json"
+
+
+def agents_dir(cfg: RunConfig, run_id: str) -> Path:
+    return Path(cfg.runs_dir) / run_id / "agents"
+
+
+def agent_configs(cfg: RunConfig, run_id: str) -> dict[str, RunConfig]:
+    """The resolved config of each learning agent's processes: the run's, with its own run id
+    and runs_dir, ``league.run_id`` / ``league.player`` set, ``actor.num_actors`` /
+    ``actor.envs_per_actor`` from its entry, the evaluator only for the main agent, then its
+    ``overrides``. A bad override is a :class:`ConfigError` naming the agent."""
+    from pydantic import ValidationError
+
+    out = {}
+    for aid, agent in cfg.league.agents.items():
+        tree: dict[str, Any] = cfg.model_dump(mode="json")
+        try:
+            tree["run_id"] = agent_run_id(run_id, aid)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        tree["runs_dir"] = str(agents_dir(cfg, run_id))
+        tree["league"].update(run_id=run_id, player=aid)
+        tree["actor"].update(num_actors=agent.num_actors, envs_per_actor=agent.envs_per_actor)
+        if agent.role != "main":
+            tree["evaluator"]["enabled"] = False
+        for k, v in agent.overrides.items():
+            _set_path(tree, k, v)
+        try:
+            out[aid] = RunConfig.model_validate(tree)
+        except ValidationError as e:
+            first = e.errors()[0]
+            raise ConfigError(f"league.agents.{aid}.overrides: {'.'.join(map(str, first['loc']))}: {first['msg']} "
+                              f"(got {first.get('input')!r})") from None
+    return out
+
+
+def check_league(cfg: RunConfig) -> None:
+    """What a league run needs, checked before anything starts: Ape-X, a match env whose bots
+    include every ``league.bots`` name, ``opponents.pool`` names (frozen players of the league)
+    that are valid player ids and clash with no bot or agent, agent configs that validate."""
+    if cfg.algo != "apex":
+        raise ConfigError(f"league.enabled needs algo apex (the league's actors are Ape-X actors), got {cfg.algo!r}")
+    from zenrl.common.env_factory import make_env
+
+    env = make_env(cfg.env)
+    try:
+        if not hasattr(env.unwrapped, "opponent_policy"):
+            raise ConfigError(f"league.enabled needs a match env (zenrl/BurgerWar*), not env.id={cfg.env.id!r}")
+        for b in cfg.league.bots:
+            try:
+                env.reset(seed=0, options={"opponent": b})
+            except ValueError as e:
+                raise ConfigError(f"league.bots: {b!r} is no bot of {cfg.env.id}: {e}") from None
+    finally:
+        env.close()
+    taken = set(cfg.league.bots) | set(cfg.league.agents)
+    for name in cfg.opponents.pool:
+        if name in taken:
+            raise ConfigError(f"opponents.pool.{name}: the name is taken by a league bot or agent")
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_\-]{0,31}", name) or any(name.startswith(f"{a}-") for a in cfg.league.agents):
+            raise ConfigError(f"opponents.pool.{name}: a league player's name is 1-32 letters, digits, '_' or '-', "
+                              "starting with a letter and not with an agent's name and '-' (its snapshots' names)")
+    agent_configs(cfg, cfg.run_id or "x" * 20)
+
+
+def read_applied(run_dir: Path) -> dict[str, int]:
+    try:
+        d = json.loads((run_dir / APPLIED_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return {str(k): int(v) for k, v in d.items()} if isinstance(d, dict) else {}
+
+
+def write_applied(run_dir: Path, applied: dict[str, int]) -> None:
+    from zenrl.launcher.runfolder import write_json_atomic
+
+    write_json_atomic(run_dir / APPLIED_FILE, applied)
