@@ -22,6 +22,7 @@ from typing import Any
 
 from zenrl.common import protocol as P
 from zenrl.common.config import LeagueConfig
+from zenrl.common.atomic_files import remove_stale_temp_files, write_bytes_atomically
 from zenrl.common.errors import ProtocolError
 from zenrl.league.core import SNAPSHOT, League, LearnerWeights
 
@@ -29,26 +30,6 @@ log = logging.getLogger(__name__)
 
 STATE_FILE = "state.json"
 SNAPSHOT_DIR = "snapshots"
-
-
-def _fsync_dir(d: Path) -> None:
-    fd = os.open(d, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """``data`` to ``path``: temp file, fsync, ``os.replace``, fsync of the directory."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
 
 
 def encode_weights(pid: str, w: LearnerWeights, max_bytes: int) -> bytes:
@@ -79,9 +60,9 @@ class LeagueStore:
         left the league are deleted after the state no longer names them."""
         for pid, p in league.players.items():
             if p.kind == SNAPSHOT and pid not in self._written and pid in league.weights:
-                write_atomic(self.snapshot_path(pid), encode_weights(pid, league.weights[pid], self.max_bytes))
+                write_bytes_atomically(self.snapshot_path(pid), encode_weights(pid, league.weights[pid], self.max_bytes))
                 self._written.add(pid)
-        write_atomic(self.dir / STATE_FILE, json.dumps(league.to_state(now)).encode())
+        write_bytes_atomically(self.dir / STATE_FILE, json.dumps(league.to_state(now)).encode())
         keep = {f"{pid}.msgpack" for pid, p in league.players.items() if p.kind == SNAPSHOT}
         snap_dir = self.dir / SNAPSHOT_DIR
         if snap_dir.is_dir():
@@ -93,6 +74,8 @@ class LeagueStore:
     def load(self, cfg: LeagueConfig, now: float, frozen: list[str] | tuple[str, ...] = ()) -> League | None:
         """The league saved here, or None when there is no state yet. An unreadable state
         file is an error (:class:`ValueError`): a league must not silently start over."""
+        for d in (self.dir, self.dir / SNAPSHOT_DIR):  # writes killed before their rename
+            remove_stale_temp_files(d)
         path = self.dir / STATE_FILE
         if not path.exists():
             return None

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from zenrl.common.atomic_files import fsync_dir, remove_stale_temp_files, write_atomically
 from zenrl.common.checkpoints import TrainingState, checkpoint_name, list_checkpoints, load_latest, read_checkpoint
 
 __all__ = ["TrainingState", "checkpoint_dir", "list_checkpoints", "load_latest", "read_checkpoint", "save_checkpoint",
@@ -26,52 +27,17 @@ def checkpoint_dir(runs_dir: str | os.PathLike[str], run_id: str) -> Path:
     return Path(runs_dir) / run_id / "checkpoints"
 
 
-def _fsync_dir(d: Path) -> None:
-    """Make a rename or unlink in ``d`` durable (its directory entry is data too)."""
-    fd = os.open(d, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write_atomically(path: Path, write) -> None:
-    """``write(f)`` into a temp file beside ``path``, fsync it, rename it over ``path``, fsync the folder."""
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)  # a failed write (a full disk) leaves no partial temp file
-    _fsync_dir(path.parent)
-
-
-def remove_stale_temp_files(directory: str | os.PathLike[str]) -> list[Path]:
-    """Delete the ``.<name>.tmp-<pid>`` files of writes that were killed before their rename
-    (they are never read, and a crash loop would otherwise fill the disk with them). Returns them."""
-    d = Path(directory)
-    if not d.is_dir():
-        return []
-    stale = [p for p in d.iterdir() if p.name.startswith(".") and ".tmp-" in p.name and p.is_file()]
-    for p in stale:
-        p.unlink(missing_ok=True)
-    return stale
-
-
 def save_checkpoint(directory: str | os.PathLike[str], state: TrainingState, keep: int) -> Path:
     """Write ``state`` as ``ckpt-<state.updates>.pt`` atomically and prune to the newest ``keep``."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     path = d / checkpoint_name(state.updates)
-    _write_atomically(path, lambda f: torch.save(state.to_dict(), f))
+    write_atomically(path, lambda f: torch.save(state.to_dict(), f))
     old = list_checkpoints(d)[:-keep]
     for p in old:
         p.unlink(missing_ok=True)
     if old:
-        _fsync_dir(d)
+        fsync_dir(d)
     return path
 
 
@@ -85,7 +51,7 @@ def write_version_mark(run_dir: str | os.PathLike[str], version: int) -> None:
     resumed from an older checkpoint continues above every version actors have seen."""
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)
-    _write_atomically(d / VERSION_MARK, lambda f: f.write(str(int(version)).encode()))
+    write_atomically(d / VERSION_MARK, lambda f: f.write(str(int(version)).encode()))
 
 
 def read_version_mark(run_dir: str | os.PathLike[str]) -> int:

@@ -36,6 +36,8 @@ from typing import Iterator
 
 import numpy as np
 
+from zenrl.common.atomic_files import fsync_dir
+
 log = logging.getLogger(__name__)
 
 MAGIC = b"ZRL2"
@@ -72,15 +74,6 @@ class RecordRef:
 
 def _segment_name(first_key: int) -> str:
     return f"seg-{first_key:016d}.log"
-
-
-def fsync_dir(directory: Path) -> None:
-    """fsync a directory, so that a file created, renamed or removed in it survives a power cut."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _record_at(buf: "mmap.mmap", pos: int) -> tuple[int, int, int] | None:

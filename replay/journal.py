@@ -39,7 +39,8 @@ from typing import Any
 
 from zenrl.common import protocol as P
 from zenrl.common.errors import ProtocolError
-from zenrl.replay.durable import RecordRef, ReplayLog, fsync_dir
+from zenrl.common.atomic_files import fsync_dir
+from zenrl.replay.durable import RecordRef, ReplayLog
 
 log = logging.getLogger(__name__)
 

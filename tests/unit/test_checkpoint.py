@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from zenrl.common import atomic_files
 from zenrl.common.checkpoints import (TRAINING_STATES, A3CTrainingState, ApexTrainingState, ImpalaTrainingState,
                                      R2D2TrainingState, TrainingState, training_state_class)
 from zenrl.common.config import load_config
@@ -265,8 +266,9 @@ def test_writes_are_durable_and_a_failed_one_leaves_the_old_state(tmp_path, monk
     """The folder is fsynced after each rename (the new name is on disk, not only the data); a
     write that fails midway (a full disk) leaves the previous checkpoint and mark, and no temp file."""
     synced = []
-    real = ckmod._fsync_dir
-    monkeypatch.setattr(ckmod, "_fsync_dir", lambda d: synced.append(d) or real(d))
+    real = atomic_files.fsync_dir
+    monkeypatch.setattr(atomic_files, "fsync_dir", lambda d: synced.append(d) or real(d))
+    monkeypatch.setattr(ckmod, "fsync_dir", atomic_files.fsync_dir)
     save_checkpoint(tmp_path, _a3c_state(10), keep=3)
     write_version_mark(tmp_path, 7)
     assert synced == [tmp_path, tmp_path]
