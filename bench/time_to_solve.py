@@ -99,9 +99,11 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
     evals = s.get("evals") or []
     last = next((e for e in reversed(evals) if e.get("since_first_step")), None)
     sps = last["env_steps"] / last["since_first_step"] if last and last["since_first_step"] > 0 else None
+    at = next((e for e in evals if s["solved"] and e.get("since_first_step") == s["solve_s_since_first_step"]), {})
     out = {"seed": seed, "solved": bool(s["solved"]), "solve_s": s["solve_s_since_first_step"],
+           "updates_at_solve": at.get("updates"), "env_steps_at_solve": at.get("env_steps"),
            "startup_s": s["startup_s"], "env_steps": s["env_steps"], "env_steps_per_s": sps,
-           "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),
+           "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),  # at the end
            "env_steps_trained": (s.get("learner") or {}).get("env_steps_trained"),
            "returncode": p.returncode, "process_s": time.monotonic() - t0}
     log(f"zenrl {algo} seed {seed}: {json.dumps(out)}")
