@@ -14,11 +14,15 @@ on the same machine, in the same run, seeds interleaved (SF seed 0, zenrl seed 0
 * zenrl: ``zenrl run --config configs/cartpole_impala.yaml`` as ``bench/time_to_solve.py`` runs
   it: solved at a greedy evaluation mean >= 475 over 10 episodes (stricter than a training
   mean), seconds since the first env step; then one run of ``--throughput-s`` seconds without
-  target or evaluator for the env steps its learner consumes per second (median of its reports).
+  target or evaluator for the env steps its learner consumes per second (median of its reports),
+  and, from the solve runs, the env steps its learner trained on per second while solving
+  (updates at the solving eval x T x B / solve time).
 
 Reported (the last stdout line is one JSON object; progress goes to stderr):
 ``time_ratio_vs_sf``: zenrl median solve time / SF median time to a training mean of 450 (< 1:
-zenrl is ahead); ``consumption_ratio_vs_sf``: zenrl learner's env steps/s / SF's.
+zenrl is ahead; an unsolved run counts as infinitely slow); ``consumption_ratio_vs_sf``: zenrl
+learner's env steps/s / SF's; ``consumption_while_solving_ratio_vs_sf``: the same from the solve
+runs. SF's times come from its own log stamps.
 
     python bench/vs_sample_factory.py                       # 3 seeds each (a few minutes)
     python bench/vs_sample_factory.py --seeds 1 --cap-s 120
@@ -27,6 +31,7 @@ zenrl is ahead); ``consumption_ratio_vs_sf``: zenrl learner's env steps/s / SF's
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import re
@@ -50,6 +55,7 @@ SF_EXAMPLE_ARGS = ["--algo=APPO", "--use_rnn=False", "--num_envs_per_worker=20",
                    "--recurrence=1", "--with_vtrace=False", "--batch_size=512", "--reward_scale=0.1",
                    "--save_every_sec=10", "--experiment_summaries_interval=10", "--env=CartPole-v1"]
 SF_MACHINE_ARGS = ["--num_workers=2", "--device=cpu"]
+_STAMP = re.compile(r"\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})\]")
 _FRAMES = re.compile(r"Fps is \(10 sec: ([\d.na]+).*Total num frames: (\d+)")
 _REWARD = re.compile(r"Avg episode reward: \[\(0, '(-?[\d.]+)'\)\]")
 
@@ -70,7 +76,7 @@ def run_sf(python: str, seed: int, cap_s: float, train_dir: Path) -> dict[str, A
     cmd = [python, "-m", "sf_examples.train_gym_env", *SF_EXAMPLE_ARGS, *SF_MACHINE_ARGS, f"--seed={seed}",
            f"--experiment=zenrl_bench_cartpole_s{seed}_{os.getpid()}", f"--train_dir={train_dir}",
            f"--train_for_seconds={int(cap_s + 120)}"]
-    t_launch = time.monotonic()
+    t_launch = time.time()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     first: tuple[float, int] | None = None     # (clock, frames) of the first report with frames
     last: tuple[float, int] | None = None
@@ -90,7 +96,10 @@ def run_sf(python: str, seed: int, cap_s: float, train_dir: Path) -> dict[str, A
     threading.Thread(target=watchdog, daemon=True).start()
     try:
         for line in p.stdout:  # type: ignore[union-attr]
-            now = time.monotonic()
+            # SF's own log time (a pipe may deliver lines late, in bursts); arrival time without one
+            st = _STAMP.search(line)
+            now = (datetime.datetime.strptime(st.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(st.group(2)) / 1000
+                   if st else time.time())
             tail = (tail + [line.rstrip()])[-20:]
             m = _FRAMES.search(line)
             if m:
@@ -98,7 +107,7 @@ def run_sf(python: str, seed: int, cap_s: float, train_dir: Path) -> dict[str, A
                 if frames > 0:
                     if first is None:
                         first = (now, frames)
-                        deadline[0] = now + cap_s
+                        deadline[0] = time.monotonic() + cap_s
                     last = (now, frames)
                     if m.group(1) != "nan" and float(m.group(1)) > 0:
                         fps10.append(float(m.group(1)))
@@ -138,7 +147,8 @@ def main() -> None:
                     help="python of the virtual environment with sample-factory 2.1.1 (env ZENRL_SF_PYTHON)")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--cap-s", type=float, default=300.0, help="wall-clock cap per run after its first step")
-    ap.add_argument("--throughput-s", type=float, default=30.0, help="seconds of zenrl's learner-consumption run")
+    ap.add_argument("--throughput-s", type=float, default=60.0,
+                    help="seconds of zenrl's learner-consumption run (its start-up included: keep it well above that)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="zenrl config override")
     args = ap.parse_args()
     why = sf_missing(args.sf_python)
@@ -158,6 +168,15 @@ def main() -> None:
     sf_sps = [r["env_steps_per_s"] for r in sf if r["env_steps_per_s"]]
     sf_rate = statistics.median(sf_sps) if sf_sps else None
     z_rate = cons.get("median_env_steps_per_s")
+    # the env steps zenrl's learner trained on per second while solving (T * B per update)
+    from zenrl.common.config import load_config
+
+    icfg = load_config(str(tts.ROOT / "configs" / "cartpole_impala.yaml"), args.set, environ={}).impala
+    T, B = icfg.unroll_length, icfg.batch_unrolls
+    for r in zen:
+        r["trained_per_s_while_solving"] = (round(r["updates_at_solve"] * T * B / r["solve_s"], 1)
+                                            if r.get("updates_at_solve") and r.get("solve_s") else None)
+    z_solving = [r["trained_per_s_while_solving"] for r in zen if r["trained_per_s_while_solving"]]
     print(json.dumps({
         "bench": "vs_sample_factory", "env": "CartPole-v1", "seeds": args.seeds, "cap_s": args.cap_s,
         "load_average": {"start": load_start, "end": os.getloadavg()}, "cpus": os.cpu_count(),
@@ -170,6 +189,8 @@ def main() -> None:
         "time_ratio_vs_sf": (round(z_med / sf_med, 3) if z_med != float("inf") and sf_med not in (0.0, float("inf"))
                              else None),
         "consumption_ratio_vs_sf": round(z_rate / sf_rate, 3) if z_rate and sf_rate else None,
+        "consumption_while_solving_ratio_vs_sf": (round(statistics.median(z_solving) / sf_rate, 3)
+                                                  if z_solving and sf_rate else None),
     }, default=float))
 
 
