@@ -5,7 +5,9 @@ composed of
   (numpy forward for MLP networks): actions drawn from pi(.|s) with the newest weights;
 * :class:`~zenrl.actor.adders.UnrollsToLearner`: every ``impala.unroll_length`` batched steps,
   one :class:`~zenrl.common.protocol.Unroll` per env on ``unrolls/<id>`` (BLOCK, lz4 with
-  ``actor.compress``), stamped with the policy version it was acted with;
+  ``actor.compress``), stamped with the policy version it was acted with; for frame-stacked
+  image envs (``actor.frames`` and ``actor.frame_stack`` >= 2) :class:`FramedUnrolls`, each
+  distinct frame of an unroll once (the stacks as frame ids, docs/protocol.md);
 * the weights follower, polled every ``actor.weights_poll_steps`` batched steps (latest only,
   never blocking), and a gate that waits for the learner's first weights (an unroll's version
   must be one the learner published, or its lag could not be measured).
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import torch
@@ -32,8 +34,30 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
 from zenrl.common.opponents import wrap_opponents
+from zenrl.common.specs import ArraySpec
 
 log = logging.getLogger(__name__)
+
+
+def frame_fields(spec: Mapping[str, ArraySpec], frame_stack: int) -> list[str]:
+    """The observation fields sent in frame mode: uint8 stacks ``[k, H, W(, C)]`` of
+    ``frame_stack`` >= 2 frames (unstacked observations already travel once per unroll row)."""
+    if frame_stack < 2:
+        return []
+    return [k for k, s in spec.items() if s.dtype == "uint8" and len(s.shape) >= 3 and s.shape[0] == frame_stack]
+
+
+class FramedUnrolls(UnrollsToLearner):
+    """:class:`~zenrl.actor.adders.UnrollsToLearner` whose unrolls carry the ``fields``' stacks
+    as frames and ids (:meth:`~zenrl.common.protocol.Unroll.framed`): a k-frame stack shares
+    k - 1 frames with its neighbour, so an unroll of T steps sends ~T + k frames, not (T + 1) * k."""
+
+    def __init__(self, *args: Any, fields: list[str], **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.fields = fields
+
+    def unrolls(self, steps: list[Any]) -> list[P.Unroll]:
+        return [u.framed(self.fields) for u in super().unrolls(steps)]
 
 
 class ImpalaActor(ActorWorker):
@@ -50,11 +74,13 @@ class ImpalaActor(ActorWorker):
         envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         n_actions = num_actions(envs.single_action_space)
         torch.manual_seed(cfg.seed)
-        self.net = ActorCritic(obs_spec(envs.single_observation_space), n_actions, cfg.network)
+        spec = obs_spec(envs.single_observation_space)
+        self.net = ActorCritic(spec, n_actions, cfg.network)
         weights = WeightsFollower(node, keys, self.net, cfg.transport.max_message_bytes)
-        self.adder: UnrollsToLearner = UnrollsToLearner(
-            keys, actor_id, cfg.impala.unroll_length, lambda: weights.version, cfg.transport.max_message_bytes,
-            None if cfg.actor.compress == "none" else cfg.actor.compress)
+        adder_args = (keys, actor_id, cfg.impala.unroll_length, lambda: weights.version,
+                      cfg.transport.max_message_bytes, None if cfg.actor.compress == "none" else cfg.actor.compress)
+        stacked = frame_fields(spec, cfg.actor.frame_stack) if cfg.actor.frames else []
+        self.adder: UnrollsToLearner = FramedUnrolls(*adder_args, fields=stacked) if stacked else UnrollsToLearner(*adder_args)
         policy = Sampling(self.net, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1)),
                           use_numpy=True, with_logp=True)
         super().__init__(keys, actor_id, slot, envs, policy, self.adder, weights,

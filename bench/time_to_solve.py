@@ -5,7 +5,10 @@ SB3 seed 0, zenrl seed 1, ...) so that machine noise hits both alike.
 * zenrl: ``zenrl run --config configs/cartpole_<algo>.yaml --seed S`` as a subprocess with
   ``target_return=475``; the figures come from ``runs/<id>/summary.json``:
   ``solve_s_since_first_step`` (the launcher's clock starts at the first env step an actor
-  reports; its evaluator runs in its own process, concurrently) and ``startup_s``.
+  reports; its evaluator runs in its own process, concurrently) and ``startup_s``. The actors
+  report every ``--report-s`` seconds (``actor.episode_report_s``; their first report comes
+  one interval after they start stepping, so the launcher's clock starts up to that late:
+  at the configs' 1 s, up to a second of training went unclocked).
 * SB3: in this process, the rl-baselines3-zoo CartPole-v1 hyper-parameters (below):
   apex is compared with SB3 DQN, a3c with SB3 A2C (8 envs). The clock starts at the first
   env step (first rollout) and is paused while evaluating: every ``--sb3-eval-every`` env steps
@@ -78,12 +81,13 @@ def finite(x: float) -> float | None:
 
 
 # --------------------------------------------------------------------------------------------
-def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str] | None = None) -> dict[str, Any]:
+def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str] | None = None,
+              report_s: float = 0.05) -> dict[str, Any]:
     run_id = f"tts-{algo}-s{seed}-{os.getpid()}"
     cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(ROOT / "configs" / f"cartpole_{algo}.yaml"),
            "--seed", str(seed), "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
            "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={TARGET}",
-           "--set", f"max_wall_s={cap_s}"]
+           "--set", f"max_wall_s={cap_s}", "--set", f"actor.episode_report_s={report_s}"]
     for kv in sets or []:
         cmd += ["--set", kv]
     t0 = time.monotonic()
@@ -95,9 +99,11 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
     evals = s.get("evals") or []
     last = next((e for e in reversed(evals) if e.get("since_first_step")), None)
     sps = last["env_steps"] / last["since_first_step"] if last and last["since_first_step"] > 0 else None
+    at = next((e for e in evals if s["solved"] and e.get("since_first_step") == s["solve_s_since_first_step"]), {})
     out = {"seed": seed, "solved": bool(s["solved"]), "solve_s": s["solve_s_since_first_step"],
+           "updates_at_solve": at.get("updates"), "env_steps_at_solve": at.get("env_steps"),
            "startup_s": s["startup_s"], "env_steps": s["env_steps"], "env_steps_per_s": sps,
-           "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),
+           "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),  # at the end
            "env_steps_trained": (s.get("learner") or {}).get("env_steps_trained"),
            "returncode": p.returncode, "process_s": time.monotonic() - t0}
     log(f"zenrl {algo} seed {seed}: {json.dumps(out)}")
@@ -225,9 +231,13 @@ def main() -> None:
     ap.add_argument("--skip-a3c", action="store_true", help="--algo impala: no zenrl A3C runs")
     ap.add_argument("--throughput-s", type=float, default=30.0,
                     help="--algo impala: seconds of each learner-consumption run (0: none)")
+    ap.add_argument("--report-s", type=float, default=0.05,
+                    help="actor.episode_report_s of the zenrl solve runs: the launcher's clock starts at the first "
+                         "actor report, up to this long after the first env step")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the zenrl runs (repeatable), e.g. --set evaluator.interval_s=1")
     args = ap.parse_args()
+    load_start = os.getloadavg()
     seeds = 1 if args.quick else args.seeds
     cap = min(args.cap_s, 240.0) if args.quick else args.cap_s
     eval_every = args.sb3_eval_every or (1000 if args.algo == "apex" else 2500)
@@ -236,9 +246,9 @@ def main() -> None:
     with_a3c = args.algo == "impala" and not args.skip_a3c
     with tempfile.TemporaryDirectory(prefix="zenrl-tts-") as tmp:
         for s in range(seeds):
-            zen.append(run_zenrl(args.algo, s, cap, Path(tmp), args.set))
+            zen.append(run_zenrl(args.algo, s, cap, Path(tmp), args.set, args.report_s))
             if with_a3c:
-                a3c.append(run_zenrl("a3c", s, cap, Path(tmp)))
+                a3c.append(run_zenrl("a3c", s, cap, Path(tmp), report_s=args.report_s))
             if not args.skip_sb3:
                 try:
                     sb3.append(run_sb3(args.algo, s, cap, eval_every, args.sb3_threads))
@@ -255,6 +265,7 @@ def main() -> None:
     result: dict[str, Any] = {
         "bench": "time_to_solve", "env": "CartPole-v1", "algo": args.algo, "target_return": TARGET,
         "eval_episodes": EVAL_EPISODES, "seeds": seeds, "quick": args.quick, "cap_s": cap,
+        "report_s": args.report_s, "load_average": {"start": load_start, "end": os.getloadavg()},
         "zenrl": {"config": f"configs/cartpole_{args.algo}.yaml", "overrides": args.set, "median_solve_s": finite(z_med), "runs": zen},
         "sb3": {"algo": "DQN" if args.algo == "apex" else "A2C",  # a3c and impala: A2C
                 "zoo_hyperparameters": ZOO_DQN if args.algo == "apex" else ZOO_A2C,

@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, ClassVar, Iterable, Mapping
 
 import lz4.block
 import msgpack
@@ -914,15 +914,25 @@ class Unroll(Message):
     ``behaviour_logits``: float32[T, A] or nil (lets a learner compute KL or full-distribution
     corrections). Float arrays must be finite. uint8 observation arrays may be lz4-compressed.
 
+    Frame mode (frame-stacked image fields; nil otherwise): ``frames`` ``{field: array[F, ...]}``
+    holds the distinct frames of this unroll's stacks of that field, each once; ``obs[field]``
+    is then int64[T+1, k] and ``final_obs[field]`` int64[K, k], the frame ids (rows of
+    ``frames[field]``, oldest first) of each k-frame stack. Ids are local to the message (an
+    unroll stands alone: the learner may drop any). :meth:`resolved` gives the unroll with the
+    stacks rebuilt, ``array[rows, k, ...]``.
+
     Decoding checks, before decompressing anything: the steps T (from ``action``'s declared
     shape) are 1..MAX_UNROLL_STEPS, every ``obs`` array declares T+1 rows, and the observation
-    arrays' declared sizes together stay under MAX_UNROLL_BYTES."""
+    arrays' declared sizes (frame-mode fields as rebuilt) together stay under MAX_UNROLL_BYTES.
+    ``decode(..., spec=...)`` also checks every declared observation dtype and item shape
+    against the env's (:meth:`check_declared`) before decompressing."""
 
     TYPE: ClassVar[str] = "unroll"
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
                                         "obs": "arrays", "action": "array", "behaviour_logp": "array",
                                         "reward": "array", "terminated": "array", "truncated": "array",
-                                        "final_obs": "arrays?", "behaviour_logits": "array?"}
+                                        "final_obs": "arrays?", "behaviour_logits": "array?", "frames": "arrays?"}
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"frames"})
     actor_id: str
     policy_version: int
     seq: int
@@ -934,6 +944,7 @@ class Unroll(Message):
     truncated: np.ndarray
     final_obs: dict[str, np.ndarray] | None = None
     behaviour_logits: np.ndarray | None = None
+    frames: dict[str, np.ndarray] | None = None
 
     @property
     def steps(self) -> int:
@@ -952,7 +963,114 @@ class Unroll(Message):
                   self.reward, self.terminated, self.truncated]
         if self.behaviour_logits is not None:
             arrays.append(self.behaviour_logits)
+        arrays += (self.frames or {}).values()
         return sum(int(a.nbytes) for a in arrays)
+
+    def framed(self, fields: Iterable[str]) -> "Unroll":
+        """The frame-mode form of this unroll (:meth:`resolved` inverts it): the ``fields``
+        present, k-frame stacks ``array[rows, k, ...]`` (oldest first, as gymnasium's
+        FrameStackObservation gives), as their distinct frames and int64 ids. The stacks are
+        walked in time order (each truncated step's final observation after its row); a slot
+        reuses the frame of the previous stack's next slot, or of its own next slot, where
+        every field's content is equal (a continuing episode, or reset padding), else it is a
+        new frame. Equal content is what makes a reuse correct: no episode boundary is read."""
+        names = [f for f in fields if f in self.obs]
+        if not names or self.frames is not None:
+            return self
+        ks = {self.obs[f].shape[1] if self.obs[f].ndim >= 3 else 0 for f in names}
+        if len(ks) != 1 or 0 in ks:
+            raise ValueError(f"frame fields {names} must be stacks [rows, k, ...] of one k, got {ks}")
+        k = ks.pop()
+        fin = self.final_obs or {}
+        src = {"obs": self.obs, "final_obs": fin}
+        ids = {"obs": np.empty((self.steps + 1, k), np.int64),
+               "final_obs": np.empty((int(self.cut.sum()), k), np.int64)}
+        order, j = [], 0
+        for t, c in enumerate(np.append(self.cut, False)):
+            order.append(("obs", t))
+            if c:
+                order.append(("final_obs", j))
+                j += 1
+        picked: list[tuple[str, int, int]] = []  # (group, row, slot) of each new frame
+        prev: tuple[str, int] | None = None
+        for g, r in order:
+            cur = {f: src[g][f][r] for f in names}
+            row = ids[g][r]
+            before = None if prev is None else ({f: src[prev[0]][f][prev[1]] for f in names}, ids[prev[0]][prev[1]])
+            slots: Iterable[int] = range(k - 1, -1, -1)
+            if before is not None and all(np.array_equal(cur[f][:-1], before[0][f][1:]) for f in names):
+                row[:-1] = before[1][1:]  # a continuing episode: only the newest slot is left
+                slots = (k - 1,)
+            for i in slots:
+                if i < k - 1:
+                    if before is not None and all(np.array_equal(cur[f][i], before[0][f][i + 1]) for f in names):
+                        row[i] = before[1][i + 1]
+                        continue
+                    if all(np.array_equal(cur[f][i], cur[f][i + 1]) for f in names):
+                        row[i] = row[i + 1]
+                        continue
+                picked.append((g, r, i))
+                row[i] = len(picked) - 1
+            prev = (g, r)
+        frames = {f: np.stack([src[g][f][r][i] for g, r, i in picked]) for f in names}
+        obs = {**self.obs, **{f: ids["obs"] for f in names}}
+        final = {**fin, **{f: ids["final_obs"] for f in names}} if self.final_obs is not None else None
+        return replace(self, obs=obs, final_obs=final, frames=frames)
+
+    def resolved(self) -> "Unroll":
+        """This unroll with every frame-mode field rebuilt from its frames:
+        ``frames[f][ids]`` -> ``array[rows, k, ...]`` (itself when not in frame mode)."""
+        if self.frames is None:
+            return self
+        obs, fin = dict(self.obs), dict(self.final_obs) if self.final_obs is not None else None
+        for k, fr in self.frames.items():
+            obs[k] = fr[obs[k]]
+            if fin is not None:
+                fin[k] = fr[fin[k]]
+        return replace(self, obs=obs, final_obs=fin, frames=None)
+
+    @classmethod
+    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+               limits: DecodeLimits | None = None,
+               spec: Mapping[str, tuple[str, tuple[int, ...]]] | None = None) -> "Unroll":
+        """As :meth:`Message.decode`; with ``spec`` (observation field -> (dtype, item shape),
+        the env's), the declared observation arrays are checked against it first
+        (:meth:`check_declared`), before anything is decompressed."""
+        env = _unpack(payload, max_bytes)
+        if env["t"] != cls.TYPE:
+            raise ProtocolError("t", f"expected message type {cls.TYPE!r:.100}, got {env['t']!r:.100}", "type")
+        if spec is not None:
+            cls.check_declared(env, spec)
+        return cls._from_envelope(env, limits or _DEFAULT_LIMITS)  # type: ignore[return-value]
+
+    @staticmethod
+    def check_declared(env: dict[str, Any], spec: Mapping[str, tuple[str, tuple[int, ...]]]) -> None:
+        """The observation fields of an unpacked Unroll against the env's ``spec``, from the
+        declared ``dtype``/``shape`` alone: the same field names; each plain array's dtype and
+        item shape the spec's; each frame-mode field's frames of the spec's dtype and frame shape
+        (the spec's item shape less its first, stack axis) with ids [rows, spec's k]. A lying
+        sender is refused (reason ``spec``) before its arrays are decompressed."""
+        frames = env.get("frames")
+        frames = frames if type(frames) is dict else {}
+        for group in ("obs", "final_obs", "frames"):
+            maps = env.get(group)
+            if maps is None and group != "obs":
+                continue
+            if type(maps) is not dict or not set(maps) <= set(spec) or (group == "obs" and set(maps) != set(spec)):
+                names = sorted(maps) if type(maps) is dict else maps
+                raise ProtocolError(group, f"fields {names!r} are not the env's {sorted(spec)}", "spec")
+            for k, m in maps.items():
+                dtype, item = spec[k]
+                got = (m.get("dtype"), m.get("shape")) if type(m) is dict else (None, None)
+                if group != "frames" and k in frames:  # frame ids of k-frame stacks
+                    if type(got[1]) is not list or len(got[1]) != 2 or got[1][1:] != list(item[:1]):
+                        raise ProtocolError(f"{group}.{k}", f"frame ids declare shape {got[1]!r}; the env's "
+                                            f"{list(item)} stacks need [rows, {item[0] if item else '?'}]", "spec")
+                    continue
+                want = list(item[1:]) if group == "frames" else list(item)
+                if got[0] != dtype or type(got[1]) is not list or got[1][1:] != want:
+                    raise ProtocolError(f"{group}.{k}", f"declares {got[0]}{got[1]!r}; the env's spec needs "
+                                        f"{dtype}[rows, {', '.join(map(str, want))}]", "spec")
 
     @staticmethod
     def _precheck(env: dict[str, Any]) -> None:
@@ -970,8 +1088,19 @@ class Unroll(Message):
         T = act[0]
         if not 1 <= T <= MAX_UNROLL_STEPS:
             raise ProtocolError("action", f"declares {T} steps, outside 1..{MAX_UNROLL_STEPS}", "batch" if T == 0 else "size")
+        def nbytes(m: dict[str, Any], shape: list[int]) -> int:
+            dt = _DTYPES.get(m.get("dtype")) if type(m.get("dtype")) is str else None
+            return math.prod(shape) * (1 if dt is None else dt.itemsize)
+
+        # frame-mode fields: bytes per frame, so that rebuilt stacks count at their full size
+        frame_bytes = {}
+        frames = env.get("frames")
+        for k, m in (frames.items() if type(frames) is dict else ()):
+            shape = shape_of(m)
+            if shape:
+                frame_bytes[k] = nbytes(m, shape[1:])
         total = 0
-        for group in ("obs", "final_obs"):
+        for group in ("frames", "obs", "final_obs"):
             maps = env.get(group)
             if type(maps) is not dict or len(maps) > MAX_FIELDS:
                 continue  # left to the full decoder
@@ -981,8 +1110,9 @@ class Unroll(Message):
                     continue
                 if group == "obs" and (not shape or shape[0] != T + 1):
                     raise ProtocolError(f"obs.{k}", f"declares {shape[:1]} rows; an unroll of {T} steps needs {T + 1}", "batch")
-                dt = _DTYPES.get(m.get("dtype")) if type(m.get("dtype")) is str else None
-                total += math.prod(shape) * (1 if dt is None else dt.itemsize)
+                total += nbytes(m, shape)
+                if group != "frames" and k in frame_bytes:  # ids [rows, k] -> rows * k frames
+                    total += math.prod(shape) * frame_bytes[k]
                 if total > MAX_UNROLL_BYTES:
                     raise ProtocolError(f"{group}.{k}", f"declared sizes exceed {MAX_UNROLL_BYTES} bytes; refused unread", "size")
 
@@ -1027,6 +1157,8 @@ class Unroll(Message):
                     raise ProtocolError(f"final_obs.{k}", f"has {a.shape[0]} rows for {K} truncated steps", "batch")
                 if a.dtype.kind == "f" and not np.isfinite(a).all():
                     raise ProtocolError(f"final_obs.{k}", "contains NaN or Inf", "nonfinite")
+        if self.frames is not None:
+            self._validate_frames()
         lg = self.behaviour_logits
         if lg is not None:
             if lg.ndim != 2 or lg.shape[0] != T:
@@ -1037,6 +1169,26 @@ class Unroll(Message):
                 raise ProtocolError("behaviour_logits", f"must be float32, got {lg.dtype.name}", "dtype")
             if not np.isfinite(lg).all():
                 raise ProtocolError("behaviour_logits", "contains NaN or Inf", "nonfinite")
+
+    def _validate_frames(self) -> None:
+        """Frame mode: every frames table names an observation field whose ids (and final
+        observations' ids) are int64 [rows, k >= 1] rows of that table."""
+        for k, fr in self.frames.items():
+            if k not in self.obs:
+                raise ProtocolError(f"frames.{k}", "names no observation field", "field")
+            if fr.ndim < 1:
+                raise ProtocolError(f"frames.{k}", "must be [F, ...] frames", "shape")
+            if fr.dtype.kind == "f" and not np.isfinite(fr).all():
+                raise ProtocolError(f"frames.{k}", "contains NaN or Inf", "nonfinite")
+            F = fr.shape[0]
+            for group, ids in (("obs", self.obs[k]), ("final_obs", (self.final_obs or {}).get(k))):
+                if ids is None:
+                    continue
+                if ids.dtype != np.int64 or ids.ndim != 2 or ids.shape[1] < 1:
+                    raise ProtocolError(f"{group}.{k}", f"frame ids must be int64 [rows, k >= 1], got "
+                                        f"{ids.dtype.name}{list(ids.shape)}", "dtype")
+                if ids.size and (int(ids.min()) < 0 or int(ids.max()) >= F):
+                    raise ProtocolError(f"{group}.{k}", f"frame ids must be in [0, {F}) (the frames sent)", "field")
 
 
 # --------------------------------------------------------------------------------------------

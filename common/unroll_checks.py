@@ -55,11 +55,14 @@ class UnrollChecker:
     def decode_limits(self, max_decoded_bytes: int = DEFAULT_MAX_DECODED_BYTES) -> DecodeLimits:
         """What ``Unroll.decode`` should admit for this env (``limits=``): compressed arrays only
         for the env's uint8 observation fields (``obs.<field>``, ``final_obs.<field>``), with
-        the field's shape per row, checked with the decoded-bytes cap before decompressing."""
+        the field's shape per row, and in frame mode ``frames.<field>`` with one frame's shape
+        (the stack axis dropped), checked with the decoded-bytes cap before decompressing."""
         packed = {}
         for k, rule in self.rules.items():
             if np.dtype(rule.dtype) == np.uint8:
                 packed[f"obs.{k}"] = packed[f"final_obs.{k}"] = (tuple(rule.shape),)
+                if len(rule.shape) >= 2:  # frame mode: the distinct frames of k-frame stacks
+                    packed[f"frames.{k}"] = (tuple(rule.shape[1:]),)
         return DecodeLimits(max_decoded_bytes, packed)
 
     def check(self, u: Unroll) -> Rejection | None:

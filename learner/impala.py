@@ -3,7 +3,8 @@
 Actors (:mod:`zenrl.actor.impala`) publish :class:`~zenrl.common.protocol.Unroll` s of T steps
 on ``unrolls/<actor>``. The Zenoh callback (:meth:`ImpalaLearner.on_unroll`) handles one
 message: a quarantined source's is dropped unread; the rest is decoded (form, sizes,
-finiteness), checked for meaning (:class:`~zenrl.common.unroll_checks.UnrollChecker`: the
+finiteness; the declared observation dtypes and shapes against the env's before anything is
+decompressed; frame-mode stacks rebuilt from their frames), checked for meaning (:class:`~zenrl.common.unroll_checks.UnrollChecker`: the
 env's observation spec and bounds, actions in range, T, reward and log-probability bounds) and
 put in the :class:`~zenrl.learner.unroll_queue.UnrollQueue` (fair across actors, bounded in
 count and bytes, unrolls more than ``impala.max_policy_lag`` versions behind dropped and
@@ -98,6 +99,9 @@ class ImpalaLearner(LearnerBase):
                                                      check_obs_bounds=icfg.check_obs_bounds)
         finally:
             env.close()
+        #: field -> (dtype, item shape): what an unroll may declare, checked before decompressing
+        self.wire_spec = {k: (r.dtype, tuple(r.shape)) for k, r in self.checker.rules.items()}
+        self.limits = self.checker.decode_limits()
         self.quarantine = Quarantine(icfg.quarantine_rejections, icfg.quarantine_window_s, icfg.quarantine_s)
         self.rejects = RejectCounter(log, "unroll")
         #: rejections by source, internal errors by type, the quarantine they feed (its lock)
@@ -193,9 +197,10 @@ class ImpalaLearner(LearnerBase):
             self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
             return "quarantined"
         try:
-            u = P.Unroll.decode(payload, self.cfg.transport.max_message_bytes)
+            u = P.Unroll.decode(payload, self.cfg.transport.max_message_bytes, limits=self.limits, spec=self.wire_spec)
             if u.actor_id != src:
                 raise ProtocolError("actor_id", f"{u.actor_id!r} differs from the key's {src!r}", "source")
+            u = u.resolved()
             why = self.checker.check(u)
             if why is not None:
                 self.reject(why.reason, why.detail, src)

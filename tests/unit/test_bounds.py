@@ -67,6 +67,11 @@ def _samples() -> dict[str, P.Message]:
         "stats": P.Stats("replay", "replay", 1.0, {"n": 3, "s": "x"}),
         "unroll": P.Unroll("a0", 2, 9, {"obs": _f32(T + 1, 4)}, np.zeros(T, np.int64), np.full(T, -0.5, np.float32),
                            _f32(T), np.zeros(T, bool), np.zeros(T, bool), None, _f32(T, 2)),
+        "opponent_request": P.OpponentRequest("main", "a0"),
+        "opponent_reply": P.OpponentReply("ok", "main", 1, "cheese", "bot", -1, ""),
+        "player_weights_request": P.PlayerWeightsRequest("main", 3),
+        "player_weights": P.PlayerWeights("ok", "main-s1", 3, 10, "arch", "", {"w": _f32(2, 2)}),
+        "match_result": P.MatchResult("a0", "main", 0, 3, "cheese", -1, 1, 2, 1),
     }
 
 
