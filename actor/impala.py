@@ -31,6 +31,7 @@ from zenrl.actor.worker import ActorWorker, FirstWeights
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
+from zenrl.common.opponents import wrap_opponents
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,8 @@ class ImpalaActor(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        # opponents.pool and self-play snapshots as match opponents (common/opponents.py)
+        envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         n_actions = num_actions(envs.single_action_space)
         torch.manual_seed(cfg.seed)
         self.net = ActorCritic(obs_spec(envs.single_observation_space), n_actions, cfg.network)

@@ -32,7 +32,7 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import QNetwork, num_actions, obs_spec, set_compute_threads
-from zenrl.common.policy_io import wrap_selfplay
+from zenrl.common.opponents import wrap_opponents
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
 
@@ -49,8 +49,8 @@ class ApexActor(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(acfg.torch_threads)
         envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        if cfg.selfplay.enabled:  # frozen learner snapshots join the opponents (common/policy_io.py)
-            envs.envs = wrap_selfplay(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
+        # opponents.pool and self-play snapshots as match opponents (common/opponents.py)
+        envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         spec = obs_spec(envs.single_observation_space)
         n_actions = num_actions(envs.single_action_space)
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast

@@ -9,6 +9,10 @@ actor's id is the smallest among the slot's holders it lists; otherwise withdraw
 a random back-off. Waiting for one's own token (rather than a fixed time) is what makes two
 concurrent claims agree: whichever token reached the router second is listed together with the
 first when its owner looks, so at most one of them keeps the slot.
+
+A secured actor (login ``actor-<i>``, zenrl/identity.py) claims exactly slot ``i`` (``only``):
+the router's access control lets that login hold no other slot token, and no other login hold
+that one, so no actor can take another's slot.
 """
 
 from __future__ import annotations
@@ -41,15 +45,18 @@ def quarantined(node: Node, keys: P.Keys) -> set[str]:
 
 
 def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, visible_within_s: float = 10.0,
-               attempts: int = 20, seed: int | None = None) -> tuple[int, Any]:
+               attempts: int = 20, seed: int | None = None, only: int | None = None) -> tuple[int, Any]:
     """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes).
-    ``visible_within_s``: how long a declared token may take to be listed by the router."""
+    ``visible_within_s``: how long a declared token may take to be listed by the router.
+    ``only``: claim this slot or none (:class:`TransportError` after ``attempts``)."""
     rng = random.Random(seed if seed is not None else actor_id)
     for _ in range(attempts):
         # a quarantined actor's slot counts as free: its data is dropped, so its slot explores nothing
         bad = quarantined(node, keys)
         used = {s for s, a in _holders(node, keys) if a != actor_id and a not in bad}
-        if previous is not None and previous not in used:
+        if only is not None:
+            cand = only
+        elif previous is not None and previous not in used:
             cand = previous
         else:
             cand = next(i for i in range(len(used) + 1) if i not in used)
@@ -65,4 +72,7 @@ def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = N
             return cand, token
         node.withdraw(token)
         time.sleep(rng.uniform(0.05, 0.3))  # back off before the next try
+    if only is not None:
+        raise TransportError(f"actor {actor_id} could not claim its exploration slot {only} in {attempts} attempts "
+                             f"(another actor holds it, or the router drops this login's token for it)")
     raise TransportError(f"actor {actor_id} could not claim an exploration slot in {attempts} attempts")

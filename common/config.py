@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any, Literal, Mapping, Optional
 
@@ -72,6 +73,8 @@ class ReplayConfig(_Section):
     stats_interval_s: float = Field(2.0, gt=0, description="How often the replay publishes its stats.")
     ingest_batch_chunks: int = Field(32, ge=1, description="Queued chunks the ingest thread validates and inserts as one batch.")
     queue_size: int = Field(256, ge=1, description="Ingest queue length (chunks) between Zenoh and the replay.")
+    queue_max_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Ingest queue bound in bytes: encoded chunks queued or being ingested (one chunk always enters an empty queue). With max_decoded_bytes and transport.max_message_bytes it bounds what a barrage of the largest messages adds to the replay's memory (docs/architecture.md).")
+    max_decoded_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Most bytes the compressed arrays of one chunk may declare (checked before decompressing; the spec's shape for each field is checked too), and the decoded bytes the ingest thread holds at once before it inserts.")
     durable: bool = Field(False, description="Keep an append-only log of inserted chunks and priority snapshots so the contents survive a crash.")
     log_dir: Optional[str] = Field(None, description="Directory of the durable log (default: <runs_dir>/<run_id>/replay).")
     flush_interval_s: float = Field(1.0, gt=0, description="fsync the durable log at most this often (the loss window after a crash).")
@@ -202,11 +205,45 @@ class ImpalaConfig(_Section):
 
 class SelfPlayConfig(_Section):
     enabled: bool = Field(False, description="Self-play (zenrl/BurgerWar* envs): actors also play frozen snapshots of the learner, read from its checkpoint directory (needs a filesystem shared with the learner, as in `zenrl run`).")
-    snapshot_prob: float = Field(0.3, ge=0, le=1, description="Probability that an episode is played against a snapshot (once one is held) instead of the scripted env.kwargs.opponents.")
+    snapshot_prob: float = Field(0.3, ge=0, le=1, description="Probability that an episode is played against a snapshot (once one is held) instead of opponents.pool's draw (env.kwargs.opponents' when the pool is empty).")
     snapshot_interval_s: float = Field(300.0, gt=0, description="Each actor adds the learner's newest checkpoint to its league of snapshots at most this often.")
     max_snapshots: int = Field(10, ge=1, description="Snapshots each actor keeps (the oldest is dropped first).")
     epsilon: float = Field(0.05, ge=0, le=1, description="Random-action probability of a snapshot opponent.")
     checkpoint_dir: Optional[str] = Field(None, description="Where snapshots are read from (default: <runs_dir>/<run_id>/checkpoints).")
+
+
+class OpponentSpec(_Section):
+    """One named match opponent of ``opponents.pool``: a scripted ``bot`` or a frozen policy
+    read from ``path``."""
+
+    bot: Optional[str] = Field(None, description="A scripted bot of the match env by name (idle, random, cheese, teriyaki, clubhouse, waypoint).")
+    path: Optional[str] = Field(None, description="A frozen policy: a checkpoint file (read weights only), or with exported: true a `zenrl export` file. Relative to the working directory.")
+    exported: bool = Field(False, description="path is a `zenrl export` TorchScript file: a program that runs code when loaded, so set it only for files you trust (e.g. models/*.pt).")
+    weight: float = Field(1.0, gt=0, description="Relative probability of drawing this opponent for an episode.")
+    epsilon: Optional[float] = Field(None, ge=0, le=1, description="Random-action probability of this frozen policy (default: opponents.epsilon).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "OpponentSpec":
+        if (self.bot is None) == (self.path is None):
+            raise ValueError("an opponent is either a scripted `bot` or a policy file `path` (give exactly one)")
+        if self.exported and self.path is None:
+            raise ValueError("exported: true needs a `path`")
+        if self.epsilon is not None and self.path is None:
+            raise ValueError("epsilon applies to a policy `path`, not to a scripted bot")
+        return self
+
+
+class OpponentsConfig(_Section):
+    pool: dict[str, OpponentSpec] = Field(default_factory=dict, description="Named match opponents (zenrl/BurgerWar* envs), one drawn per episode by weight, on whichever side env.kwargs.side gives the agent (a frozen policy sees the match from its own side); replaces the draw from env.kwargs.opponents. Each is {bot: NAME} or {path: FILE[, exported: true]}, with an optional weight, e.g. {target: {path: models/burgerwar_league.pt, exported: true}, waypoint: {bot: waypoint}}. A missing file or one of other observation/action spaces stops the run at start. Empty: the env draws from env.kwargs.opponents.")
+    epsilon: float = Field(0.0, ge=0, le=1, description="Random-action probability of the pool's frozen policies (0: greedy, the policy as it plays).")
+
+    @field_validator("pool")
+    @classmethod
+    def _names(cls, v: dict[str, OpponentSpec]) -> dict[str, OpponentSpec]:
+        for name in v:
+            if not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", name):
+                raise ValueError(f"opponent name {name!r} must be 1-64 letters, digits, '_', '.' or '-'")
+        return v
 
 
 class R2D2Config(_Section):
@@ -252,6 +289,7 @@ class RunConfig(_Section):
     a3c: A3CConfig = Field(default_factory=A3CConfig)
     impala: ImpalaConfig = Field(default_factory=ImpalaConfig)
     selfplay: SelfPlayConfig = Field(default_factory=SelfPlayConfig)
+    opponents: OpponentsConfig = Field(default_factory=OpponentsConfig)
     r2d2: R2D2Config = Field(default_factory=R2D2Config)
 
     @field_validator("cpu_placement", mode="before")

@@ -1,19 +1,24 @@
-"""Trained policies out of checkpoint files, for tools and for self-play opponents.
+"""Trained policies out of checkpoint and exported files, for tools and for match opponents.
 
 A checkpoint (``runs/<id>/checkpoints/ckpt-<updates>.pt``, written by the learner) is read as a
 :class:`~zenrl.common.checkpoints.TrainingState`; this module needs its run configuration and
 its policy network (the schema's ``network`` class, loaded with ``policy_state()``: the online
 Q network of Ape-X, the actor-critic of A3C).
 
-It lives in ``common/`` so that actors (which may not import ``learner/``) can load frozen
-snapshots as opponents (:class:`SnapshotLeague`, :class:`SelfPlayWrapper`).
+An exported file (``zenrl export``: TorchScript plus a ``zenrl.json`` description) is a program,
+loaded only where the user said so (:class:`ExportedPlayer`).
+
+It lives in ``common/`` so that actors (which may not import ``learner/`` or ``zenrl/``) can load
+frozen policies as match opponents (:mod:`zenrl.common.opponents`).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
-import time
+import warnings
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -21,9 +26,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from zenrl.common.checkpoints import TrainingState, list_checkpoints, read_checkpoint
-from zenrl.common.config import RunConfig, SelfPlayConfig
-from zenrl.common.errors import CheckpointError
+from zenrl.common.checkpoints import TrainingState, read_checkpoint
+from zenrl.common.errors import CheckpointError, ZenrlError
 from zenrl.common.networks import ActorCritic, flat_obs, num_actions, obs_spec, sample_categorical
 from zenrl.common.recurrent import RecurrentQNetwork
 
@@ -149,92 +153,68 @@ def load_policy(path: str | os.PathLike[str], observation_space: gym.Space, acti
 
 
 # --------------------------------------------------------------------------------------------
-# Self-play: a league of frozen learner snapshots as match opponents
+# Exported (TorchScript) policies
 # --------------------------------------------------------------------------------------------
-class SnapshotLeague:
-    """Frozen copies of the learner, taken from its checkpoint directory at most every
-    ``cfg.snapshot_interval_s`` (the newest checkpoint then, if not already held), at most
-    ``cfg.max_snapshots`` kept (the oldest dropped first). One league per actor process; its
-    envs share it. Never raises on a missing/vanishing checkpoint: it logs and keeps what it has.
+def is_exported(path: str | os.PathLike[str]) -> bool:
+    """True for a file written by ``zenrl export`` (a TorchScript archive carrying
+    ``extra/zenrl.json``), False for anything else (a checkpoint, a missing file)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return any(n.endswith("/extra/zenrl.json") for n in z.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
 
-    ``observation_space`` / ``action_space``: the single match env's spaces.
+
+class ExportedPlayer:
+    """``player(obs) -> int`` for one observation, from a ``zenrl export`` file: the greedy policy
+    as TorchScript plus its ``zenrl.json`` description (env id and kwargs, input shapes and dtypes,
+    number of actions). ``meta`` is that description.
+
+    A TorchScript file is a program (its graph runs when called): load only files you trust, such
+    as the ones in ``models/``. Checkpoints (``torch.load(weights_only=True)``) carry weights only.
     """
 
-    def __init__(self, cfg: SelfPlayConfig, checkpoint_dir: str | os.PathLike[str], observation_space: gym.Space,
-                 action_space: gym.Space, seed: int = 0) -> None:
-        self.cfg = cfg
-        self.dir = Path(checkpoint_dir)
-        self.observation_space, self.action_space = observation_space, action_space
-        self.rng = np.random.default_rng(seed)
-        self.snapshots: list[tuple[str, torch.nn.Module]] = []
-        self._next_refresh = 0.0
-        self._warned = False
-
-    def refresh(self, now: float | None = None) -> bool:
-        """Add the newest checkpoint if the interval has passed and it is new; True if added."""
-        now = time.monotonic() if now is None else now
-        if now < self._next_refresh:
-            return False
-        self._next_refresh = now + self.cfg.snapshot_interval_s
-        files = list_checkpoints(self.dir)
-        if not files:
-            if not self._warned:
-                log.info("self-play: no checkpoint in %s yet; scripted opponents only", self.dir)
-                self._warned = True
-            return False
-        newest = files[-1]
-        if any(name == newest.name for name, _ in self.snapshots):
-            return False
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        extra = {"zenrl.json": ""}
         try:
-            net = build_network(read_checkpoint(newest), self.observation_space, self.action_space)
-        except CheckpointError as e:  # pruned between listing and reading, or half written
-            log.warning("self-play: snapshot skipped: %s", e)
-            return False
-        self.snapshots.append((newest.name, net))
-        del self.snapshots[:-self.cfg.max_snapshots]
-        log.info("self-play: snapshot %s added (%d held)", newest.name, len(self.snapshots))
-        return True
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self.module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+            self.meta = json.loads(extra["zenrl.json"])
+        except Exception as e:  # torch raises many types for a damaged archive
+            raise ZenrlError(f"exported policy {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
+        if not isinstance(self.meta, dict) or not isinstance(self.meta.get("inputs"), dict) or "env" not in self.meta:
+            raise ZenrlError(f"exported policy {str(path)!r}: zenrl.json lacks 'env' or 'inputs'")
+        self.module.eval()
+        self.name = Path(path).name
+        self.n_actions = int(self.meta.get("n_actions", 0))
+        self.keys = list(self.meta["inputs"])
+        self.dict_obs = self.keys != ["obs"]
 
-    def sample(self) -> tuple[str, torch.nn.Module] | None:
-        """A uniformly drawn snapshot, or None while the league is empty."""
-        if not self.snapshots:
-            return None
-        return self.snapshots[int(self.rng.integers(len(self.snapshots)))]
+    def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
+        """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
+        spaces = observation_space.spaces if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
+        if sorted(spaces) != sorted(self.keys):
+            raise ZenrlError(f"{self.name}: exported for observation keys {sorted(self.keys)}, the env has {sorted(spaces)}")
+        for k, want in self.meta["inputs"].items():
+            sp = spaces[k]
+            if list(sp.shape) != list(want.get("shape", [])) or str(sp.dtype) != want.get("dtype"):
+                raise ZenrlError(f"{self.name}: input {k!r} exported as {want.get('dtype')}{want.get('shape')}, "
+                                 f"the env gives {sp.dtype}{list(sp.shape)}")
+        n = getattr(action_space, "n", None)
+        if n is None or int(n) != self.n_actions:
+            raise ZenrlError(f"{self.name}: exported for {self.n_actions} actions, the env has {action_space}")
 
+    def reseed(self, seed: int | None) -> None:
+        """Nothing to reseed: the exported policy is greedy."""
 
-class SelfPlayWrapper(gym.Wrapper):
-    """Per-episode opponent choice for a ``zenrl/BurgerWar*`` env: with probability
-    ``cfg.snapshot_prob`` (once the league holds a snapshot) the episode is played against a
-    snapshot drawn from ``league`` (the env's ``"policy"`` opponent), otherwise against the env's
-    own draw from its scripted ``opponents``. Observations, rewards and the rest pass through.
-    """
+    def reset(self) -> None:
+        """Nothing to reset: an exported policy has no state between observations."""
 
-    def __init__(self, env: gym.Env, league: SnapshotLeague, seed: int = 0) -> None:
-        super().__init__(env)
-        self.league = league
-        self.rng = np.random.default_rng(seed)
-        self._policy = GreedyPolicy(torch.nn.Identity(), num_actions(env.action_space), league.cfg.epsilon,
-                                    seed=seed + 1)
-        # The env builds its "policy" opponent lazily from this attribute on the first episode
-        # that names it (documented option ``opponent_policy``).
-        env.unwrapped.opponent_policy = self._policy
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        self.league.refresh()
-        options = dict(options or {})
-        if "opponent" not in options and self.league.snapshots and self.rng.random() < self.league.cfg.snapshot_prob:
-            name, net = self.league.sample()
-            self._policy.net, self._policy.name = net, name
-            self._policy.reset()
-            options["opponent"] = "policy"
-        return self.env.reset(seed=seed, options=options)
-
-
-def wrap_selfplay(envs: list[gym.Env], cfg: RunConfig, run_id: str, seed: int) -> list[gym.Env]:
-    """Wrap an actor's envs for self-play (``cfg.selfplay``), all sharing one
-    :class:`SnapshotLeague` on ``cfg.selfplay.checkpoint_dir`` (default
-    ``<runs_dir>/<run_id>/checkpoints``, the learner's, on a shared filesystem)."""
-    sp = cfg.selfplay
-    ckpt_dir = Path(sp.checkpoint_dir) if sp.checkpoint_dir else Path(cfg.runs_dir) / run_id / "checkpoints"
-    league = SnapshotLeague(sp, ckpt_dir, envs[0].observation_space, envs[0].action_space, seed)
-    return [SelfPlayWrapper(e, league, seed + 7919 * (i + 1)) for i, e in enumerate(envs)]
+    def __call__(self, obs: Any) -> int:
+        with torch.no_grad():
+            if self.dict_obs:
+                x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}
+            else:
+                x = torch.as_tensor(np.ascontiguousarray(obs))
+            return int(self.module(x))

@@ -11,9 +11,15 @@ names (``obs/lidar``; see :mod:`zenrl.common.specs`).
 
 Decoding validates everything a peer could get wrong, and raises :class:`ProtocolError` naming
 the field: the payload size cap, msgpack itself, the version, the message type, the exact set of
-field names, value types, array dtypes (a whitelist), shapes against the byte length, consistent
-batch sizes, finite floats where they matter (rewards, priorities, weights, gradients). Nothing is
-ever unpickled. docs/protocol.md documents the same thing for third parties.
+field names, value types, every integer field against its declared range (a signed int64 at
+most: :data:`INT_RANGES`), array dtypes (a whitelist), shapes (at most MAX_NDIM dimensions of at
+most MAX_DIM, at most MAX_ELEMENTS elements counting a zero dimension as one, so a zero cannot
+hide huge dimensions) against the byte length, the bytes the compressed arrays of one message
+declare (together at most :attr:`DecodeLimits.max_decoded_bytes`, each against the receiver's
+spec where it has one), all before anything is allocated or decompressed; then consistent batch
+sizes and finite floats where they matter (rewards, priorities, weights, gradients). No other
+exception type escapes decoding for any input. Nothing is ever unpickled. docs/protocol.md
+documents the same thing for third parties.
 """
 
 from __future__ import annotations
@@ -40,6 +46,17 @@ MAX_FIELDS = 256
 MAX_NDIM = 8
 #: Most items one SampleRequest may ask for.
 MAX_SAMPLE_BATCH = 65536
+#: Range of every integer field (schema kinds "int" and "uint"): a signed int64 (int63 for
+#: "uint"), so that any integer the protocol admits fits the numpy columns it may end up in.
+INT64_MIN, INT64_MAX = -(1 << 63), (1 << 63) - 1
+INT_RANGES = {"int": (INT64_MIN, INT64_MAX), "uint": (0, INT64_MAX)}
+#: Largest dimension of an array, and most elements one array may declare; a zero dimension
+#: counts as one, so ``[2**32, 2**32, 0]`` is refused rather than overflowing a product later.
+MAX_DIM = 1 << 30
+MAX_ELEMENTS = 1 << 30
+#: Largest frame id (``frame_base + F`` and every id stay below it, leaving int64 headroom for
+#: the arithmetic on ids).
+MAX_FRAME_ID = 1 << 62
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 _FIELD_RE = re.compile(r"^[A-Za-z0-9_.\-/]{1,128}$")
@@ -220,6 +237,48 @@ def encode_array(a: np.ndarray, codec: str | None = None) -> dict[str, Any]:
 
 _ARRAY_KEYS = {"dtype", "shape", "data"}
 _PACKED_KEYS = {"dtype", "shape", "data", "codec", "size"}
+_SHAPE_RULE = f"must be a list of <= {MAX_NDIM} ints in 0..{MAX_DIM} of at most {MAX_ELEMENTS} elements (a 0 counted as 1)"
+
+
+def declared_elements(name: str, shape: Any) -> int:
+    """The element count of a declared ``shape`` (a list of ints), after checking it against
+    MAX_NDIM, MAX_DIM and MAX_ELEMENTS (a zero dimension counted as one, so a zero never hides
+    huge dimensions). Raises :class:`ProtocolError` (reason ``shape``) naming ``name``."""
+    if type(shape) is not list or len(shape) > MAX_NDIM:
+        raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
+    n = bound = 1
+    for d in shape:
+        if type(d) is not int or not 0 <= d <= MAX_DIM:
+            raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
+        n *= d
+        bound *= d or 1
+    if bound > MAX_ELEMENTS:
+        raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
+    return n
+
+
+#: Default cap on the bytes the compressed arrays of one message declare together (what
+#: decompressing them would allocate); see :class:`DecodeLimits`.
+DEFAULT_MAX_DECODED_BYTES = 256 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """What a receiver admits beyond the protocol's own bounds, checked from the declared numbers
+    of the envelope before any array is decompressed.
+
+    ``max_decoded_bytes``: most bytes the compressed arrays of one message may declare together
+    (raw arrays are read-only views on the payload, so the message cap already bounds them).
+    ``packed``: None (the receiver has no spec), or the compressed arrays its spec allows:
+    ``{path: item shapes}`` with paths such as ``"data.obs"`` or ``"frames.obs"`` and the shapes
+    one row (``shape[1:]``) may have; a compressed array elsewhere, or of another item shape, is
+    refused unread (reason ``spec``)."""
+
+    max_decoded_bytes: int = DEFAULT_MAX_DECODED_BYTES
+    packed: Mapping[str, tuple[tuple[int, ...], ...]] | None = None
+
+
+_DEFAULT_LIMITS = DecodeLimits()
 
 
 def decode_array(name: str, m: Any) -> np.ndarray:
@@ -231,14 +290,18 @@ def decode_array(name: str, m: Any) -> np.ndarray:
     dtype, shape, data = m["dtype"], m["shape"], m["data"]
     dt = _DTYPES.get(dtype) if type(dtype) is str else None
     if dt is None:
-        raise ProtocolError(f"{name}.dtype", f"{dtype!r} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
+        raise ProtocolError(f"{name}.dtype", f"{dtype!r:.100} is not one of {sorted(ALLOWED_DTYPES)}", "dtype")
     if type(shape) is not list or len(shape) > MAX_NDIM:
-        raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+        raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
     expected = dt.itemsize
     for d in shape:
         if type(d) is not int or d < 0:
-            raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+            raise ProtocolError(f"{name}.shape", f"{shape!r:.200} {_SHAPE_RULE}", "shape")
         expected *= d
+    if not expected:
+        # a non-empty array's bytes bound its shape (the message cap is at most 1 GiB); an
+        # empty one's dimensions must be bounded on their own (a zero hides the rest)
+        declared_elements(name, shape)
     if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
     if expected != len(data):
@@ -246,23 +309,30 @@ def decode_array(name: str, m: Any) -> np.ndarray:
     return np.frombuffer(data, dtype=dt).reshape(shape)
 
 
+def _check_packed_header(name: str, m: dict[str, Any]) -> int:
+    """A compressed array map's codec, dtype, shape and declared ``size`` (the decompressed
+    bytes, which must be the shape's); returns that size. Reads no data."""
+    codec, size, dtype, shape = m["codec"], m["size"], m["dtype"], m["shape"]
+    if codec not in CODECS:
+        raise ProtocolError(f"{name}.codec", f"{codec!r:.100} is not one of {list(CODECS)}", "codec")
+    if dtype != "uint8":
+        raise ProtocolError(f"{name}.dtype", f"compressed arrays must be uint8, got {dtype!r:.100}", "dtype")
+    expected = declared_elements(name, shape)
+    if type(size) is not int or size != expected:
+        raise ProtocolError(f"{name}.size", f"declares {size!r:.100} decompressed bytes; uint8 shape {shape} needs {expected}", "shape")
+    data = m["data"]
+    if isinstance(data, (bytes, bytearray)) and size > LZ4_MAX_RATIO * len(data) + 64:
+        raise ProtocolError(f"{name}.size", f"declares {size} bytes from {len(data)} compressed bytes, more than "
+                            f"{codec} can expand; refused unread", "bomb")
+    return size
+
+
 def _decode_packed(name: str, m: dict[str, Any]) -> np.ndarray:
     """A compressed array: every declared number is checked before a byte is decompressed."""
     codec, size, dtype, shape, data = m["codec"], m["size"], m["dtype"], m["shape"], m["data"]
-    if codec not in CODECS:
-        raise ProtocolError(f"{name}.codec", f"{codec!r} is not one of {list(CODECS)}", "codec")
-    if dtype != "uint8":
-        raise ProtocolError(f"{name}.dtype", f"compressed arrays must be uint8, got {dtype!r}", "dtype")
-    if type(shape) is not list or len(shape) > MAX_NDIM or any(type(d) is not int or d < 0 for d in shape):
-        raise ProtocolError(f"{name}.shape", f"{shape!r} must be a list of <= {MAX_NDIM} non-negative ints", "shape")
+    _check_packed_header(name, m)
     if not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
-    expected = math.prod(shape)
-    if type(size) is not int or size != expected:
-        raise ProtocolError(f"{name}.size", f"declares {size!r} decompressed bytes; uint8 shape {shape} needs {expected}", "shape")
-    if size > LZ4_MAX_RATIO * len(data) + 64:
-        raise ProtocolError(f"{name}.size", f"declares {size} bytes from {len(data)} compressed bytes, more than "
-                            f"{codec} can expand; refused unread", "bomb")
     try:
         raw = lz4.block.decompress(data, uncompressed_size=size)
     except lz4.block.LZ4BlockError:
@@ -279,7 +349,7 @@ def _check_field_name(name: str, k: Any) -> None:
     if k in _good_field_names:
         return
     if not isinstance(k, str) or not _FIELD_RE.match(k):
-        raise ProtocolError(f"{name}", f"array name {k!r} must be 1-128 characters of [A-Za-z0-9_.-/]", "name")
+        raise ProtocolError(f"{name}", f"array name {k!r:.140} must be 1-128 characters of [A-Za-z0-9_.-/]", "name")
     if len(_good_field_names) < 4096:
         _good_field_names.add(k)
 
@@ -326,6 +396,8 @@ class Message:
     #: optional fields left out of the envelope when None (added to a message type later, so
     #: peers that do not use them see the same bytes as before)
     OMIT_NONE: ClassVar[frozenset[str]] = frozenset()
+    #: integer fields whose range is narrower than their kind's (:data:`INT_RANGES`)
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {}
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
@@ -353,26 +425,37 @@ class Message:
 
     # -- decode ---------------------------------------------------------------------------
     @classmethod
-    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> "Message":
+    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+               limits: DecodeLimits | None = None) -> "Message":
+        """Validate and decode; ``limits``: the receiver's :class:`DecodeLimits` (default: the
+        protocol's decoded-bytes cap, no spec)."""
         env = _unpack(payload, max_bytes)
         if env["t"] != cls.TYPE:
-            raise ProtocolError("t", f"expected message type {cls.TYPE!r}, got {env['t']!r}", "type")
-        return cls._from_envelope(env)
+            raise ProtocolError("t", f"expected message type {cls.TYPE!r:.100}, got {env['t']!r:.100}", "type")
+        return cls._from_envelope(env, limits or _DEFAULT_LIMITS)
 
     @classmethod
-    def _from_envelope(cls, env: dict[str, Any]) -> "Message":
+    def _from_envelope(cls, env: dict[str, Any], limits: DecodeLimits = _DEFAULT_LIMITS) -> "Message":
         names = _field_names(cls)
         got = env.keys() - {"v", "t"}
         missing = sorted(n for n in names - got if not cls.SCHEMA[n].endswith("?"))
         if missing:
             raise ProtocolError(missing[0], f"missing from {cls.TYPE} message", "field")
-        unknown = sorted(got - names)
+        unknown = sorted(map(str, got - names))
         if unknown:
-            raise ProtocolError(str(unknown[0]), f"is not a field of {cls.TYPE} messages", "field")
-        kw = {n: _check(n, cls.SCHEMA[n], env.get(n)) for n in names}
+            raise ProtocolError(unknown[0][:100], f"is not a field of {cls.TYPE} messages", "field")
+        cls._precheck(env)
+        _check_declared(cls, env, limits)
+        rng = cls.RANGES
+        kw = {n: _check(n, cls.SCHEMA[n], env.get(n), rng.get(n)) for n in names}
         msg = cls(**kw)
         msg._validate()
         return msg
+
+    @staticmethod
+    def _precheck(env: dict[str, Any]) -> None:
+        """Checks of the envelope's declared numbers before any array is decoded; raise
+        ProtocolError."""
 
     def _validate(self) -> None:
         """Cross-field checks of a decoded message; raise ProtocolError."""
@@ -418,16 +501,65 @@ def _unpack(payload: Any, max_bytes: int) -> dict[str, Any]:
     return env
 
 
-def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
+def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, limits: DecodeLimits | None = None) -> Message:
     """Decode a message of any registered type."""
     env = _unpack(payload, max_bytes)
     cls = _REGISTRY.get(env["t"])
     if cls is None:
-        raise ProtocolError("t", f"unknown message type {env['t']!r}", "type")
-    return cls._from_envelope(env)
+        raise ProtocolError("t", f"unknown message type {env['t']!r:.100}", "type")
+    return cls._from_envelope(env, limits or _DEFAULT_LIMITS)
 
 
-def _check(name: str, kind: str, v: Any) -> Any:
+
+
+
+_ARRAY_FIELDS: dict[type, tuple[tuple[str, bool], ...]] = {}
+
+
+def _array_fields(cls: type["Message"]) -> tuple[tuple[str, bool], ...]:
+    """``(field, is a map of arrays)`` of the array fields of ``cls``, built once per class."""
+    out = _ARRAY_FIELDS.get(cls)
+    if out is None:
+        out = _ARRAY_FIELDS[cls] = tuple((n, k.startswith("arrays")) for n, k in cls.SCHEMA.items() if k.startswith("array"))
+    return out
+
+
+def _check_declared(cls: type["Message"], env: dict[str, Any], limits: DecodeLimits) -> None:
+    """The compressed arrays of a message, from their declared numbers alone (nothing is
+    decompressed): each header is sane, allowed by the receiver's spec (``limits.packed``), and
+    together they declare at most ``limits.max_decoded_bytes``. Maps too malformed to read are
+    left to the full decoder, which refuses them."""
+    total = 0
+    for n, many in _array_fields(cls):
+        v = env.get(n)
+        if type(v) is not dict:
+            continue
+        if many:
+            if len(v) > MAX_FIELDS:
+                raise ProtocolError(n, f"has {len(v)} arrays, more than {MAX_FIELDS}", "size")
+            items = v.items()
+        else:
+            items = ((None, v),)
+        for k, m in items:
+            if type(m) is not dict or len(m) != 5 or m.keys() != _PACKED_KEYS:
+                continue
+            path = n if k is None else f"{n}.{str(k)[:128]}"
+            size = _check_packed_header(path, m)
+            if limits.packed is not None:
+                allowed = limits.packed.get(path)
+                if allowed is None:
+                    raise ProtocolError(path, "is compressed, but the receiver's spec has no uint8 field by that name; "
+                                        "refused unread", "spec")
+                if tuple(m["shape"][1:]) not in allowed:
+                    raise ProtocolError(path, f"declares rows of {m['shape'][1:]}, the receiver's spec says "
+                                        f"{' or '.join(str(list(a)) for a in allowed)}; refused unread", "spec")
+            total += size
+            if total > limits.max_decoded_bytes:
+                raise ProtocolError(path, f"the compressed arrays declare more than {limits.max_decoded_bytes} "
+                                    "decoded bytes together; refused unread", "size")
+
+
+def _check(name: str, kind: str, v: Any, rng: tuple[int, int] | None = None) -> Any:
     optional = kind.endswith("?")
     base = kind.rstrip("?")
     if v is None:
@@ -435,8 +567,9 @@ def _check(name: str, kind: str, v: Any) -> Any:
             return None
         raise ProtocolError(name, "must not be nil", "field")
     if base in ("int", "uint"):
-        if not isinstance(v, int) or isinstance(v, bool) or (base == "uint" and v < 0):
-            raise ProtocolError(name, f"must be a{' non-negative' if base == 'uint' else 'n'} integer, got {v!r}", "field")
+        lo, hi = rng or INT_RANGES[base]
+        if type(v) is not int or not lo <= v <= hi:
+            raise ProtocolError(name, f"must be an integer in {lo}..{hi}, got {v!r:.100}", "field")
         return v
     if base == "float":
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -460,10 +593,13 @@ def _check(name: str, kind: str, v: Any) -> Any:
         if not isinstance(v, dict) or len(v) > 1024:
             raise ProtocolError(name, "must be a map of at most 1024 entries", "field")
         for k, x in v.items():
-            if not isinstance(k, str) or not (isinstance(x, (int, float, str, bool)) or x is None):
-                raise ProtocolError(f"{name}.{k}", "entries must map strings to numbers or strings", "field")
+            if not isinstance(k, str) or len(k) > 256 or not (isinstance(x, (int, float, str, bool)) or x is None):
+                raise ProtocolError(f"{name}.{str(k)[:100]}", "entries must map strings of at most 256 characters "
+                                    "to numbers or strings", "field")
             if isinstance(x, float) and not math.isfinite(x):
                 raise ProtocolError(f"{name}.{k}", "must be finite", "nonfinite")
+            if type(x) is int and not INT64_MIN <= x <= INT64_MAX:
+                raise ProtocolError(f"{name}.{k}", f"{x} is outside the int64 range", "field")
         return v
     raise AssertionError(f"unknown schema kind {kind}")  # programming error, not input
 
@@ -509,6 +645,7 @@ class TransitionBatch(Message):
                                         "data": "arrays", "priorities": "array?", "frames": "arrays?",
                                         "frame_base": "uint?"}
     OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"frames", "frame_base"})
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {"frame_base": (0, MAX_FRAME_ID)}
     actor_id: str
     policy_version: int
     seq: int
@@ -560,9 +697,11 @@ class TransitionBatch(Message):
         if not refs:
             raise ProtocolError("frames", "no data field names a frame table", "field")
         end = self.frame_base + n_f
+        if end > MAX_FRAME_ID:
+            raise ProtocolError("frame_base", f"frame_base + frames = {end} exceeds {MAX_FRAME_ID}", "field")
         for k, ids in refs.items():
-            if ids.dtype.kind not in "iu" or ids.ndim not in (1, 2):
-                raise ProtocolError(f"data.{k}", f"frame ids must be integer [B] or [B, k], got {ids.dtype.name}{list(ids.shape)}", "dtype")
+            if ids.dtype != np.int64 or ids.ndim not in (1, 2):
+                raise ProtocolError(f"data.{k}", f"frame ids must be int64 [B] or [B, k], got {ids.dtype.name}{list(ids.shape)}", "dtype")
             if ids.size and (ids.min() < 0 or ids.max() >= end):
                 raise ProtocolError(f"data.{k}", f"frame ids must be in [0, {end}) (frame_base + frames)", "field")
 
@@ -815,17 +954,13 @@ class Unroll(Message):
             arrays.append(self.behaviour_logits)
         return sum(int(a.nbytes) for a in arrays)
 
-    @classmethod
-    def _from_envelope(cls, env: dict[str, Any]) -> "Message":
-        cls._precheck(env)
-        return super()._from_envelope(env)
-
     @staticmethod
     def _precheck(env: dict[str, Any]) -> None:
         """Declared T and sizes, read from the array maps' ``shape``/``size`` entries alone
         (maps too malformed to read are left to the full decoder, which refuses them)."""
         def shape_of(m: Any) -> list[int] | None:
-            if type(m) is dict and type(m.get("shape")) is list and all(type(d) is int and d >= 0 for d in m["shape"]):
+            if type(m) is dict and type(m.get("shape")) is list:
+                declared_elements("array", m["shape"])  # bounded dimensions, or ProtocolError
                 return m["shape"]
             return None
 
@@ -838,15 +973,16 @@ class Unroll(Message):
         total = 0
         for group in ("obs", "final_obs"):
             maps = env.get(group)
-            if type(maps) is not dict:
-                continue
+            if type(maps) is not dict or len(maps) > MAX_FIELDS:
+                continue  # left to the full decoder
             for k, m in maps.items():
                 shape = shape_of(m)
                 if shape is None:
                     continue
                 if group == "obs" and (not shape or shape[0] != T + 1):
                     raise ProtocolError(f"obs.{k}", f"declares {shape[:1]} rows; an unroll of {T} steps needs {T + 1}", "batch")
-                total += math.prod(shape) * (_DTYPES[m["dtype"]].itemsize if m.get("dtype") in _DTYPES else 1)
+                dt = _DTYPES.get(m.get("dtype")) if type(m.get("dtype")) is str else None
+                total += math.prod(shape) * (1 if dt is None else dt.itemsize)
                 if total > MAX_UNROLL_BYTES:
                     raise ProtocolError(f"{group}.{k}", f"declared sizes exceed {MAX_UNROLL_BYTES} bytes; refused unread", "size")
 

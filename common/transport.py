@@ -45,6 +45,10 @@ def init_zenoh_logging(level: str = "warn") -> None:
         _log_inited = True
 
 
+#: What Zenoh's receive cap allows above twice ``transport.max_message_bytes`` (headers).
+RX_HEADROOM_BYTES = 64 * 1024
+
+
 def router_endpoint(explicit: str | None = None) -> str:
     """The router endpoint: ``explicit`` if given, else ``$ZENRL_ROUTER``, else the default."""
     return explicit or os.environ.get(ROUTER_ENV) or DEFAULT_ROUTER
@@ -165,6 +169,33 @@ def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,
         raise TransportError(f"could not connect to the Zenoh router at {ep}: {e}") from e
 
 
+def config_section(path: str, key: str) -> Any:
+    """One section of the Zenoh JSON5 config file ``path`` as plain data, e.g.
+    ``config_section(f, "transport/auth/usrpwd")`` -> ``{"user": ..., "password": ...,
+    "dictionary_file": ...}`` (``None`` values where unset). Raises :class:`TransportError`
+    naming the file when it cannot be read."""
+    try:
+        return json.loads(zenoh.Config.from_file(path).get_json(key))
+    except zenoh.ZError as e:
+        raise TransportError(f"Zenoh config {path!r} is invalid: {e}") from e
+
+
+def write_config(template: str, out: str, sections: dict[str, Any]) -> None:
+    """Write the Zenoh config file ``template`` with ``sections`` (``{"path/in/config": value}``)
+    replaced to ``out``, as JSON (every setting spelled out; comments are not kept). The Zenoh
+    id is left unset, so that every router started from ``out`` draws its own."""
+    try:
+        cfg = zenoh.Config.from_file(template)
+        for k, v in sections.items():
+            cfg.insert_json5(k, json.dumps(v))
+        doc = json.loads(str(cfg))
+    except zenoh.ZError as e:
+        raise TransportError(f"Zenoh config {template!r}: {e}") from e
+    doc.pop("id", None)
+    with open(out, "w") as f:
+        json.dump(doc, f, indent=1)
+
+
 class Node:
     """One process's Zenoh session plus the entities it declared; closes them all on exit.
 
@@ -192,8 +223,13 @@ class Node:
     @classmethod
     def from_config(cls, tcfg: Any) -> "Node":
         """A node for a :class:`~zenrl.common.config.TransportConfig`."""
+        # Zenoh's own receive cap (1 GiB by default) at twice zenrl's message cap: a larger message
+        # is dropped (by Zenoh, uncounted) as its fragments arrive, not reassembled and copied in
+        # full before decoding refuses it (a peer could otherwise cost a receiver 2 GiB a message);
+        # one up to twice the cap still reaches zenrl, which refuses and counts it
+        rx = {"max_message_size": 2 * int(tcfg.max_message_bytes) + RX_HEADROOM_BYTES}
         node = cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config,
-                   extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}}})
+                   extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}, "link": {"rx": rx}}})
         node.close_linger_s = tcfg.close_linger_s
         return node
 

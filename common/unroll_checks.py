@@ -15,7 +15,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from zenrl.common.protocol import Unroll
+from zenrl.common.protocol import DEFAULT_MAX_DECODED_BYTES, DecodeLimits, Unroll
 from zenrl.common.specs import ObsRule, Rejection, obs_rules_from_space
 
 
@@ -51,6 +51,16 @@ class UnrollChecker:
         if not isinstance(action_space, gym.spaces.Discrete):
             raise ValueError(f"zenrl's IMPALA needs a Discrete action space, got {action_space}")
         return cls(obs_rules_from_space(observation_space), int(action_space.n), max_abs_reward, **kw)
+
+    def decode_limits(self, max_decoded_bytes: int = DEFAULT_MAX_DECODED_BYTES) -> DecodeLimits:
+        """What ``Unroll.decode`` should admit for this env (``limits=``): compressed arrays only
+        for the env's uint8 observation fields (``obs.<field>``, ``final_obs.<field>``), with
+        the field's shape per row, checked with the decoded-bytes cap before decompressing."""
+        packed = {}
+        for k, rule in self.rules.items():
+            if np.dtype(rule.dtype) == np.uint8:
+                packed[f"obs.{k}"] = packed[f"final_obs.{k}"] = (tuple(rule.shape),)
+        return DecodeLimits(max_decoded_bytes, packed)
 
     def check(self, u: Unroll) -> Rejection | None:
         """None if the learner may train on ``u``, else the first rule it breaks."""

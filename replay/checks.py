@@ -99,7 +99,8 @@ class ChunkChecker:
     the observation bounds (dtypes and shapes are still checked)."""
 
     def __init__(self, obs_rules: Mapping[str, ObsRule], n_actions: int, n_step: int,
-                 max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True) -> None:
+                 max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True,
+                 frame_stack: int | None = None) -> None:
         if n_actions < 1 or n_step < 1:
             raise ValueError(f"n_actions and n_step must be >= 1, got {n_actions} and {n_step}")
         self.n_actions = int(n_actions)
@@ -117,16 +118,77 @@ class ChunkChecker:
         self._bounded = _tiled_bounds(self.rules, check_obs_bounds)
         self._n_actions = np.uint64(self.n_actions)
         self._n_step = np.uint8(min(self.n_step, 255))
+        #: frame mode: k frames per observation (the run's ``actor.frame_stack``; 0: whole
+        #: observations are frames), None: either layout the env allows
+        self.frame_stack = frame_stack
+
+    def packed_shapes(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """The arrays of a chunk that may travel compressed (the env's uint8 fields), with the
+        shapes one row may have: ``{"data.<field>" or "frames.<table>": (item shapes)}``; see
+        :class:`~zenrl.common.protocol.DecodeLimits`."""
+        out: dict[str, tuple[tuple[int, ...], ...]] = {}
+        for k, (dt, shape) in {**self.required, **self.optional}.items():
+            if dt == np.uint8:
+                out[f"data.{k}"] = (tuple(shape),)
+        for k, r in self.rules.items():
+            if not k.startswith("next_") and np.dtype(r.dtype) == np.uint8:
+                out[f"frames.{k}"] = tuple(dict.fromkeys(self._frame_shapes(r)))
+        return out
+
+    def _frame_shapes(self, rule: ObsRule) -> list[tuple[int, ...]]:
+        """The shapes one frame of an observation field may have in frame mode."""
+        whole, one = tuple(rule.shape), tuple(rule.shape[1:])
+        if self.frame_stack is None:
+            return [whole, one] if rule.shape else [whole]
+        return [one] if self.frame_stack else [whole]
+
+    def check_frame_fields(self, data: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray]) -> Rejection | None:
+        """A frame-mode chunk's layout against the env's spec, exactly: one frame table per
+        observation field of the env, every observation field ``X`` and ``next_X`` present as
+        int64 ids ``[B]`` (whole observations) or ``[B, k]`` (stacks of ``k =
+        actor.frame_stack`` frames), the scalar fields and ``truncated``, nothing else. So the
+        storage built from the first chunk that passes is the one the env spec defines."""
+        obs = {k: r for k, r in self.rules.items() if not k.startswith("next_")}
+        if frames.keys() != obs.keys():
+            return Rejection("spec", f"frame tables {sorted(frames)[:8]} differ from the env's observation fields {sorted(obs)}")
+        refs = set()
+        for k, rule in obs.items():
+            a = frames[k]
+            one = tuple(a.shape[1:])
+            if a.dtype != np.dtype(rule.dtype) or one not in self._frame_shapes(rule):
+                return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(one)}, the env's {k} is "
+                                           f"{rule.dtype}{list(rule.shape)} (frame_stack {self.frame_stack})")
+            stack = 0 if one == tuple(rule.shape) else int(rule.shape[0])
+            for f in (k, "next_" + k):
+                ids = data.get(f)
+                if ids is None:
+                    return Rejection("spec", f"field {f} (frame ids) is missing")
+                if ids.dtype != np.int64 or ids.shape[1:] != ((stack,) if stack else ()):
+                    return Rejection("spec", f"frame ids {f}: {ids.dtype.name}{list(ids.shape[1:])} per item, the env's "
+                                             f"layout needs int64{[stack] if stack else []}")
+                refs.add(f)
+        for k, (dt, shape) in {**self.required, **self.optional}.items():
+            if k in self.rules:
+                continue
+            a = data.get(k)
+            if a is None:
+                return Rejection("spec", f"field {k} is missing")
+            if a.dtype != dt or a.shape[1:] != shape:
+                return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {dt.name}{list(shape)}")
+        extra = sorted(set(data) - refs - set(self.required) - set(self.optional))
+        if extra:
+            return Rejection("spec", f"field {extra[0][:128]} is not part of a frame-mode Ape-X transition")
+        return None
 
     @classmethod
     def from_spaces(cls, observation_space: Any, action_space: Any, n_step: int, max_abs_reward: float,
-                    max_priority: float, check_obs_bounds: bool = True) -> "ChunkChecker":
+                    max_priority: float, check_obs_bounds: bool = True, frame_stack: int | None = None) -> "ChunkChecker":
         import gymnasium as gym
 
         if not isinstance(action_space, gym.spaces.Discrete):
             raise ValueError(f"zenrl's replay checks need a Discrete action space, got {action_space}")
         return cls(obs_rules_from_space(observation_space), int(action_space.n), n_step, max_abs_reward, max_priority,
-                   check_obs_bounds)
+                   check_obs_bounds, frame_stack)
 
     def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None,
               fields_checked: bool = False) -> Rejection | None:
@@ -310,6 +372,14 @@ class SequenceChecker:
 
     def check_frames(self, frames: Mapping[str, np.ndarray]) -> Rejection | None:
         return Rejection("fields", "R2D2 sequences carry full observations; frame mode is not supported for them")
+
+    def check_frame_fields(self, data: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray]) -> Rejection | None:
+        return self.check_frames(frames)
+
+    def packed_shapes(self) -> dict[str, tuple[tuple[int, ...], ...]]:
+        """The env's uint8 fields of a sequence, with the shape of one item (see
+        :meth:`ChunkChecker.packed_shapes`); no frame tables (frame mode is not supported)."""
+        return {f"data.{k}": (tuple(shape),) for k, (dt, shape) in self.required.items() if dt == np.uint8}
 
     def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         if not self._bounded:

@@ -37,8 +37,9 @@ log = logging.getLogger(__name__)
 
 #: Sources listed by name in the stats' per-source rejection counts (the most rejected first).
 TOP_SOURCES = 20
-#: Sources whose rejections are counted by name (the totals count them all).
-MAX_SOURCES = 10_000
+#: Sources whose rejections are counted by name, the heaviest kept (the totals count them all;
+#: the quarantine tracks as many on its own).
+MAX_SOURCES = 1024
 
 
 def source_of(key: str) -> str:
@@ -58,6 +59,13 @@ class Ingest:
         self.journal = journal
         self.store: Store | None = None
         self.queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=rcfg.queue_size)
+        #: bytes of the chunks in ``queue`` and in the ingest thread's hands (so that both together
+        #: stay within ``replay.queue_max_bytes``); ``_space`` guards it and wakes a waiting callback
+        self.queued_bytes = 0
+        self._space = threading.Condition()
+        #: chunks the ingest thread has taken from the queue and not finished
+        self.in_hand = 0
+        self.limits = P.DecodeLimits(rcfg.max_decoded_bytes, None if checker is None else checker.packed_shapes())
         #: set first on shutdown: the callback then returns at once (never waits on a queue that
         #: is about to stop being drained)
         self.closing = threading.Event()
@@ -81,38 +89,65 @@ class Ingest:
         if self.quarantine.active and self.quarantine.drop(source_of(key)):
             self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
             return
-        # wait for queue space in short slices so that a shutdown is noticed at once, not after
-        # drop_after_s per chunk (a full queue's consumer may be the one stopping)
+        if len(payload) > self.max_bytes:  # refused before it takes any room in the queue
+            self.reject("size", f"{len(payload)} bytes exceeds the cap of {self.max_bytes} bytes", key)
+            return
+        # wait for queue space (a free slot and room for its bytes; an empty queue takes any
+        # chunk) in short slices so that a shutdown is noticed at once, not after drop_after_s
+        # per chunk (a full queue's consumer may be the one stopping)
+        n = len(payload)
+        cap = self.rcfg.queue_max_bytes
         deadline = time.monotonic() + self.rcfg.drop_after_s
-        while not self.closing.is_set():
-            try:
-                self.queue.put((key, payload), timeout=min(0.05, max(0.0, deadline - time.monotonic())))
-                return
-            except queue.Full:
-                if time.monotonic() >= deadline:
+        with self._space:
+            while not self.closing.is_set():
+                if self.queued_bytes == 0 or (self.queued_bytes + n <= cap and not self.queue.full()):
+                    try:
+                        self.queue.put_nowait((key, payload))
+                    except queue.Full:
+                        pass
+                    else:
+                        self.queued_bytes += n
+                        return
+                left = deadline - time.monotonic()
+                if left <= 0:
                     self.dropped_queue_full += 1
-                    self.rejects.reject("queue_full", f"ingest queue full for {self.rcfg.drop_after_s} s; chunk dropped", key)
+                    self.rejects.reject("queue_full", f"ingest queue full ({self.queue.qsize()} chunks, {self.queued_bytes} "
+                                        f"bytes) for {self.rcfg.drop_after_s} s; chunk dropped", key)
                     return
+                self._space.wait(min(0.05, left))
         self.dropped_stopping += 1  # arrived while stopping: never inserted, so never acknowledged as such
 
     def unit(self) -> int:
         """The ingest thread's unit of work: wait briefly for a chunk, then ingest it together with
         what else is queued (one insert and tree update for many chunks). Returns items inserted."""
         try:
-            first = self.queue.get(timeout=0.2)
+            first = self._took(self.queue.get(timeout=0.2))
         except queue.Empty:
             return 0
         return self._ingest_queued(first)
 
+    def _took(self, item: tuple[str, bytes]) -> tuple[str, bytes]:
+        """A chunk taken from the queue; its bytes stay counted until :meth:`_done` (the ingest
+        thread holds them meanwhile)."""
+        return item
+
+    def _done(self, batch: Sequence[tuple[str, bytes]]) -> None:
+        """The chunks of ``batch`` are handled: their bytes free room for the callback."""
+        with self._space:
+            self.queued_bytes -= sum(len(p) for _, p in batch)
+            self._space.notify()
+
     def pending(self) -> int:
-        """Chunks waiting in the queue."""
-        return self.queue.qsize()
+        """Chunks waiting: in the queue, and those the ingest thread has taken but not finished
+        (a thread stuck on the chunks it holds has input waiting too: the supervisor reports
+        it stalled)."""
+        return self.queue.qsize() + self.in_hand
 
     def drain(self) -> None:
         """On stop: insert (and log) what was queued before the subscriber went, not lose it."""
         while True:
             try:
-                first = self.queue.get_nowait()
+                first = self._took(self.queue.get_nowait())
             except queue.Empty:
                 return
             self._ingest_queued(first)
@@ -121,20 +156,37 @@ class Ingest:
         batch = [first]
         while len(batch) < self.rcfg.ingest_batch_chunks:
             try:
-                batch.append(self.queue.get_nowait())
+                batch.append(self._took(self.queue.get_nowait()))
             except queue.Empty:
                 break
-        return self.ingest_many([(payload, key) for key, payload in batch])
+        self.in_hand = len(batch)
+        try:
+            return self.ingest_many([(payload, key) for key, payload in batch])
+        finally:
+            self.in_hand = 0
+            self._done(batch)
 
     # -- decode, check, insert -------------------------------------------------------------------
     def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
-        """Decode, check and insert each ``(payload, source)``; the good ones as one batch. A bad
-        chunk is rejected and counted alone. Returns the items inserted."""
+        """Decode, check and insert each ``(payload, source)``; the good ones as one batch (a new
+        batch each time the decoded chunks reach ``replay.max_decoded_bytes``, so that the
+        decoded data held at once stays bounded). A bad chunk is rejected and counted alone.
+        Returns the items inserted."""
         chunks: list[Chunk] = []
+        held, n = 0, 0
         for payload, source in items:
             c = self._guard(source, self._decode, payload, source)
-            if c is not None:
-                chunks.append(c)
+            if c is None:
+                continue
+            chunks.append(c)
+            held += c.nbytes
+            if held >= self.rcfg.max_decoded_bytes:
+                n += self._store_batch(chunks)
+                chunks, held = [], 0
+        return n + self._store_batch(chunks)
+
+    def _store_batch(self, chunks: list[Chunk]) -> int:
+        """Check and insert decoded chunks as one batch; returns the items inserted."""
         if not chunks:
             return 0
         with self.lock:
@@ -149,9 +201,12 @@ class Ingest:
 
     def _decode(self, payload: bytes, source: str) -> Chunk | None:
         try:
-            msg = P.TransitionBatch.decode(payload, self.max_bytes)
+            msg = P.TransitionBatch.decode(payload, self.max_bytes, self.limits)
         except ProtocolError as e:
             self.reject(e.reason, str(e), source)
+            return None
+        if msg.frames is not None and source and source_of(source) != msg.actor_id:
+            self.reject("source", f"a frame-mode chunk names actor {msg.actor_id!r} but arrived on {source}", source)
             return None
         return Chunk.of(payload, msg, source)
 

@@ -229,7 +229,8 @@ def make_checker(cfg: RunConfig) -> Checker:
                                                cfg.r2d2.lstm_size, cfg.replay.max_abs_reward, cfg.replay.max_priority,
                                                cfg.replay.check_obs_bounds)
         return ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
-                                        cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds)
+                                        cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds,
+                                        frame_stack=cfg.actor.frame_stack)
     finally:
         env.close()
 

@@ -59,6 +59,19 @@ class Chunk:
     def sender(self) -> str:
         return self.source or self.msg.actor_id
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the decoded arrays (views on the payload for those that travel raw)."""
+        m = self.msg
+        return sum(a.nbytes for a in self.data.values()) + sum(a.nbytes for a in (m.frames or {}).values())
+
+    @property
+    def stream(self) -> str:
+        """Whose frame ids a frame-mode chunk's are: the actor named by the key it arrived on
+        (the last segment), never the ``actor_id`` inside the payload, which anyone can write;
+        the payload's name only for a journal record (written from a key-bound chunk)."""
+        return self.source.rsplit("/", 1)[-1] if self.source else self.msg.actor_id
+
 
 @dataclass(frozen=True)
 class Stored:
@@ -87,7 +100,8 @@ def check_one(checker: Checker, c: Chunk) -> Rejection | None:
     """The semantic checks of one chunk alone, for either kind of storage."""
     if c.msg.frames is None:
         return checker.check(c.msg.data, c.msg.priorities)
-    return checker.check_scalars(c.msg.data, c.msg.priorities) or checker.check_frames(c.msg.frames)
+    return (checker.check_frame_fields(c.msg.data, c.msg.frames) or checker.check_scalars(c.msg.data, c.msg.priorities)
+            or checker.check_frames(c.msg.frames))
 
 
 def allocate(c: Chunk, rcfg: Any, seed: int, vetted: bool, first_key: int | None = None) -> Store:
@@ -213,7 +227,7 @@ class FrameStore:
         for c in chunks:
             refs = c.msg.frame_refs()
             batch = {k: v for k, v in c.data.items() if k not in refs}
-            fcs.append(FrameChunk(c.msg.actor_id, c.msg.frame_base, c.msg.frames, batch, refs, c.msg.priorities))
+            fcs.append(FrameChunk(c.stream, c.msg.frame_base, c.msg.frames, batch, refs, c.msg.priorities))
         return [r if isinstance(r, Exception) else Stored(r.keys, r.dropped) for r in self.buffer.insert_many(fcs)]
 
     def stats(self) -> dict[str, Any]:

@@ -47,8 +47,8 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2"),
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
                 "env", "transport", "actor.num_actors"),
-    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "network", "env",
-              "transport", "learner.gamma"),
+    "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
+              "env", "transport", "learner.gamma"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
 }
@@ -80,6 +80,12 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "INFO"), help="logging level")
 
 
+def _add_credential_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-dev-credentials", action="store_true",
+                   help="start even with the repository's development passwords (secured mode; also "
+                        "ZENRL_ALLOW_DEV_CREDENTIALS=1): for trying things out, never on a reachable network")
+
+
 def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConfig:
     ov = list(args.overrides) + list(extra or [])
     if getattr(args, "run_id", None):
@@ -94,6 +100,7 @@ def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConf
 def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
     from zenrl.common.roles import RoleFailed
     from zenrl.common.transport import install_stop_signals
+    from zenrl.identity import check_dev_credentials
 
     setup_logging(args.log_level, role)
     placed = apply_from_env()  # before any thread starts, so that every thread inherits it
@@ -101,6 +108,7 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
         log.info("cpu placement: CPUs %s, nice +%d", placed.cpus, placed.nice)
     try:
         cfg = resolve(args)
+        check_dev_credentials(cfg.transport.client_config, args.allow_dev_credentials)
         run_id = cfg.run_id or "default"
         stop = threading.Event()
         install_stop_signals(stop)
@@ -145,9 +153,26 @@ def cmd_learner(args: argparse.Namespace) -> int:
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
+    from zenrl.identity import ACTOR_LOGINS_ENV, bind_actor, take_actor_login
     from zenrl.processes import actor_main
 
-    return _run_role(args, "actor", lambda c, r, s: actor_main(c, r, s, actor_id=args.id, slot=args.slot))
+    pool = args.logins or os.environ.get(ACTOR_LOGINS_ENV)
+    if pool:  # one login of the pool, held while this process lives: transport.client_config
+        try:
+            args.overrides.append(f"transport.client_config={take_actor_login(pool)}")
+        except ConfigError as e:
+            sys.stderr.write(f"zenrl: error: {e}\n")
+            return EXIT_CONFIG
+
+    def run(c: RunConfig, r: str, s: threading.Event) -> None:
+        # a login actor-<i> is actor actor-<i> on slot <i> (the router drops anything else it sends)
+        bound = bind_actor(c.transport.client_config, args.id, args.slot if args.slot is not None else c.actor.slot)
+        if bound is not None:
+            actor_main(c, r, s, actor_id=bound[0], bound_slot=bound[1])  # claims exactly its own slot
+        else:
+            actor_main(c, r, s, actor_id=args.id, slot=args.slot)
+
+    return _run_role(args, "actor", run)
 
 
 def cmd_evaluator(args: argparse.Namespace) -> int:
@@ -165,8 +190,14 @@ def cmd_exporter(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     from zenrl.common.transport import install_stop_signals, open_router
+    from zenrl.identity import check_router_dev_credentials
 
     setup_logging(args.log_level, "router")
+    try:
+        check_router_dev_credentials(args.router_config, args.allow_dev_credentials)
+    except ConfigError as e:
+        sys.stderr.write(f"zenrl: error: {e}\n")
+        return EXIT_CONFIG
     stop = threading.Event()
     install_stop_signals(stop)
     listen = args.listen or ["tcp/0.0.0.0:7447"]
@@ -177,6 +208,19 @@ def cmd_router(args: argparse.Namespace) -> int:
         stop.wait()
     finally:
         session.close()
+    return 0
+
+
+def cmd_credentials(args: argparse.Namespace) -> int:
+    import json
+
+    from zenrl.identity import make_credentials
+
+    setup_logging(args.log_level, "credentials")
+    owner = tuple(int(x) for x in args.owner.split(":")) if args.owner else None
+    out = make_credentials(args.templates, args.out, args.actors, ca=args.ca, dev=args.dev, force=args.force,
+                           owner=owner, users_file=args.users_file)  # type: ignore[arg-type]
+    sys.stdout.write(json.dumps(out) + "\n")
     return 0
 
 
@@ -288,6 +332,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "evaluate")
     tools.quiet_native_imports()
+    if args.round_robin:
+        return _round_robin(args)
+    if not args.checkpoint:
+        raise ZenrlError("evaluate needs --checkpoint (or --round-robin PLAYERS)")
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
     summary = tools.evaluate(args.checkpoint, args.env, _json_arg(args.env_kwargs), opponents, args.episodes,
                              args.workers, args.seed, progress=not args.no_progress, policy=args.policy,
@@ -298,6 +346,31 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             json.dump(summary, f, indent=1, default=float)
     brief = {k: v for k, v in summary.items() if k != "results"}
     tools.print_json_line(brief)
+    return 0
+
+
+def _round_robin(args: argparse.Namespace) -> int:
+    """``zenrl evaluate --round-robin A,B,...``: every pair plays --episodes matches."""
+    import json
+
+    from rich.console import Console
+
+    from zenrl import tools
+
+    if args.policy != "greedy":
+        raise ZenrlError("--round-robin plays greedy policies only (no --policy sample)")
+    players = [o.strip() for o in args.round_robin.split(",") if o.strip()]
+    if args.checkpoint:
+        players.insert(0, args.checkpoint)
+    summary = tools.round_robin(players, args.episodes, args.env, _json_arg(args.env_kwargs), args.workers, args.seed,
+                                progress=not args.no_progress, allow_exported=args.exported, anchor=args.anchor)
+    console = Console(width=None if sys.stdout.isatty() else 160)
+    for table in tools.render_round_robin(summary):
+        console.print(table)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(summary, f, indent=1, default=float)
+    tools.print_json_line({k: v for k, v in summary.items() if k != "results"})
     return 0
 
 
@@ -350,6 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("replay", help="the prioritized replay service", epilog=_options_epilog("replay"), formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--id", default="replay", help="service id")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("learner", help="the learner", epilog=_options_epilog("learner"), formatter_class=fmt)
@@ -359,17 +433,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue from the newest valid checkpoint of the run (an error if there is none)")
     g.add_argument("--auto-resume", action="store_const", const="auto", dest="resume",
                    help="continue from the newest valid checkpoint if there is one, else start fresh (for restart policies)")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_learner)
 
     s = sub.add_parser("actor", help="an actor process (many envs)", epilog=_options_epilog("actor"), formatter_class=fmt)
     _add_config_args(s)
-    s.add_argument("--id", default=None, help="actor id (default: actor-<pid>)")
-    s.add_argument("--slot", type=int, default=None, help="exploration slot (default: from config or the running system)")
+    s.add_argument("--id", default=None,
+                   help="actor id (default: actor-<host>-<pid>; in secured mode the login's, actor-<i>)")
+    s.add_argument("--slot", type=int, default=None,
+                   help="exploration slot (default: from config or the running system; in secured mode the login's, <i>)")
+    s.add_argument("--logins", metavar="DIR",
+                   help="secured mode: take the first free actor login (client-actor-<i>.json5) of DIR as "
+                        "transport.client_config (also $ZENRL_ACTOR_LOGINS; replicas of one template)")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_actor)
 
     s = sub.add_parser("evaluator", help="greedy evaluation of the latest weights", epilog=_options_epilog("evaluator"),
                        formatter_class=fmt)
     _add_config_args(s)
+    _add_credential_args(s)
     s.set_defaults(func=cmd_evaluator)
 
     s = sub.add_parser("exporter", help="Prometheus metrics of a run's stats and health on an HTTP port",
@@ -380,6 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--expected-actors", type=int, default=None,
                    help="actor processes the run should have (default actor.num_actors): zenrl_actors_expected")
     s.add_argument("--poll-s", type=float, default=1.0, help="how often the liveliness tokens are polled (seconds)")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_exporter)
 
     s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
@@ -388,7 +471,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="another router to link to (repeatable): a host router names the central one, e.g. tcp/central:7447")
     s.add_argument("--router-config", help="JSON5 router config file (--listen / --connect replace its endpoints)")
     s.add_argument("--log-level", default="INFO")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_router)
+
+    s = sub.add_parser("credentials", help="fresh credentials of a secured cluster: passwords, users file, "
+                                           "client configs, router configs with per-actor access control")
+    s.add_argument("--out", required=True, help="directory to write (kept as it is if it already holds users.txt)")
+    s.add_argument("--actors", type=int, default=16, help="actor logins actor-0 .. actor-<N-1> (default 16)")
+    s.add_argument("--templates", default="deploy/zenoh",
+                   help="directory with router-secure.json5 and host-router-secure.json5 (default deploy/zenoh)")
+    s.add_argument("--ca", default="/certs/ca.pem", help="CA certificate path written into the client configs")
+    s.add_argument("--dev", action="store_true", help="the repository's development passwords instead of random ones")
+    s.add_argument("--force", action="store_true", help="overwrite an existing set")
+    s.add_argument("--owner", metavar="UID:GID", help="owner of the files written (a root setup container)")
+    s.add_argument("--users-file", metavar="PATH",
+                   help="where the routers read users.txt (default the templates' /zenoh/users.txt)")
+    s.add_argument("--log-level", default="WARNING")
+    s.set_defaults(func=cmd_credentials)
 
     s = sub.add_parser("status", help="show the live processes of a run: zenrl status runs/<run-id>")
     s.add_argument("run_dir", nargs="?", metavar="RUN_DIR",
@@ -405,8 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--list", action="store_true", help="list every option with its description")
     s.set_defaults(func=cmd_config)
 
-    def policy_args(s: argparse.ArgumentParser) -> None:
-        s.add_argument("--checkpoint", required=True,
+    def policy_args(s: argparse.ArgumentParser, required: bool = True) -> None:
+        s.add_argument("--checkpoint", required=required,
                        help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest "
                             "checkpoint; with --exported (evaluate and play) also a `zenrl export` file, e.g. models/*.pt")
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
@@ -415,13 +514,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     exported_help = ("allow `zenrl export` files as --checkpoint or opponents: they are TorchScript programs, "
                      "which run code when loaded (only for files you trust; checkpoints load without running code)")
-    s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates")
-    policy_args(s)
+    s = sub.add_parser("evaluate", help="play N greedy matches per opponent (both sides) and report win rates; "
+                                        "or a round robin of several policies and bots with Elo ratings")
+    policy_args(s, required=False)
     s.add_argument("--exported", action="store_true", help=exported_help)
     s.add_argument("--opponents", default="cheese,teriyaki,clubhouse,waypoint",
                    help="comma-separated match opponents: bot names, or checkpoint / exported policy files "
                         "(e.g. an earlier snapshot); ignored for non-match envs")
-    s.add_argument("--episodes", type=int, default=20, help="episodes per opponent (half red, half blue)")
+    s.add_argument("--round-robin", metavar="PLAYERS",
+                   help="comma-separated bots and checkpoint / exported policy files (plus --checkpoint if given): "
+                        "every pair plays --episodes matches (half on each side, each on a fresh seed from --seed; two "
+                        "bots do not meet), reported as a win/draw/loss table and Elo ratings with 95%% intervals")
+    s.add_argument("--anchor", metavar="PLAYER", help="round robin: the player rated 0 (default: the mean rating is 0)")
+    s.add_argument("--episodes", type=int, default=20,
+                   help="episodes per opponent (half red, half blue); with --round-robin, matches per pair")
     s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
     s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")
     s.add_argument("--policy", choices=("greedy", "sample"), default="greedy",

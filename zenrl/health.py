@@ -46,7 +46,8 @@ def check(role: str, ident: str | None, prefix: str | None, stats_within_s: floa
     run_id = cfg.run_id or "default"
     k = P.Keys(run_id)
     host = socket.gethostname()
-    ident = ident.replace("{hostname}", host) if ident else None
+    # {ordinal}: a StatefulSet pod's index (zenrl-actor-3 -> 3), the secured actor's login actor-<i>
+    ident = ident.replace("{hostname}", host).replace("{ordinal}", host.rsplit("-", 1)[-1]) if ident else None
     prefix = prefix.replace("{hostname}", host) if prefix else None
     out: dict = {"ok": False, "role": role, "run_id": run_id, "ids": [], "reason": ""}
     try:
@@ -109,7 +110,7 @@ def judge(role: str, token: str, want: str, ids: list[str], stats: dict[str, dic
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m zenrl.health", description=__doc__.split("\n\n")[0])
     p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator"), help="the process's role")
-    p.add_argument("--id", dest="ident", help="its exact id ({hostname} is replaced)")
+    p.add_argument("--id", dest="ident", help="its exact id ({hostname}, and {ordinal}: the hostname's last -<n>, are replaced)")
     p.add_argument("--id-prefix", help="or a prefix of its id, e.g. 'actor-{hostname}-'")
     p.add_argument("--stats-within-s", type=float, help="also require a stats message within this many seconds")
     p.add_argument("--unreachable-ok", action="store_true", help="pass when the router cannot be reached (liveness)")

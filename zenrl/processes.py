@@ -33,16 +33,17 @@ def default_actor_id() -> str:
 
 
 def actor_main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str | None = None,
-               slot: int | None = None) -> None:
+               slot: int | None = None, bound_slot: int | None = None) -> None:
     """``zenrl actor``: the configured algorithm's actor. Its exploration slot is ``slot``, else
     ``actor.slot``, else one claimed from the running system (elastic: the ladder's size is then
-    not fixed, ``num_slots`` None)."""
+    not fixed, ``num_slots`` None). ``bound_slot``: claim exactly this slot (a secured actor's
+    login ``actor-<i>`` may hold only slot ``i``; zenrl/identity.py)."""
     actor_id = actor_id or default_actor_id()
     num_slots: int | None = cfg.actor.ladder_size or cfg.actor.num_actors
-    if slot is None:
+    if slot is None and bound_slot is None:
         slot = cfg.actor.slot
     with Node.from_config(cfg.transport) as node:
         if slot is None:
-            slot, _ = claim_slot(node, P.Keys(run_id), actor_id)
+            slot, _ = claim_slot(node, P.Keys(run_id), actor_id, only=bound_slot)
             num_slots = None
         algorithm(cfg.algo).actor(cfg, node, run_id, actor_id, slot, num_slots, stop)

@@ -1,7 +1,8 @@
 """The cluster deployment: docker-compose.yml (+ docker-compose.secure.yml) and deploy/.
 
 * Validation: the compose files parse, every service has an image or a build, every file and
-  volume they mount exists (or is written by deploy/zenoh/gen-certs.sh), every variable has a
+  volume they mount exists (or is written by deploy/zenoh/gen-certs.sh, or by the secured file's
+  one-shot ``credentials`` service into its volume), every variable has a
   default, every command parses with zenrl's own CLI, every ZENRL__ variable and the mounted
   config resolve to a valid configuration, and the router image is the installed eclipse-zenoh.
 * The cluster as local processes: each service's ``command`` runs as an OS process
@@ -13,8 +14,10 @@
 * The cluster on a real Docker engine (where ``docker info`` answers and the images build;
   otherwise skipped with the reason): ``up -d --build``, the first update within 60 s, ``status``,
   ``--scale actor=4``, ``stop`` + ``up`` resumes, a crashed learner process is restarted by the
-  engine and resumes, ``down``; the secured variant refuses a client without credentials and an
-  actor's attempt to publish weights. Failures show the engine's own output.
+  engine and resumes, ``down``; the secured variant makes fresh credentials on its first ``up``,
+  refuses a client without credentials or with the repository's development password, drops an
+  actor's attempt to publish weights or to publish as another actor, and gives ``--scale actor=3``
+  three distinct identities. Failures show the engine's own output.
 """
 
 from __future__ import annotations
@@ -109,10 +112,18 @@ def raw_variables(*files: Path) -> list[tuple[str, str | None]]:
     return [(m.group(1), m.group(2)) for f in files for m in _VAR.finditer(f.read_text())]
 
 
-def zenrl_services(model: dict[str, Any], profiles: tuple[str, ...] = ()) -> dict[str, dict[str, Any]]:
-    """Services running the zenrl image, active with ``profiles``."""
+def setup_services(model: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """One-shot services of the zenrl image that run before the router (the secured file's
+    ``credentials``): no restart policy, no profile."""
     return {n: s for n, s in model["services"].items()
-            if (s.get("build") or {}).get("target") == "zenrl"
+            if (s.get("build") or {}).get("target") == "zenrl" and s.get("restart") == "no" and not s.get("profiles")}
+
+
+def zenrl_services(model: dict[str, Any], profiles: tuple[str, ...] = ()) -> dict[str, dict[str, Any]]:
+    """Services running the zenrl image, active with ``profiles`` (not the setup services)."""
+    setup = setup_services(model)
+    return {n: s for n, s in model["services"].items()
+            if (s.get("build") or {}).get("target") == "zenrl" and n not in setup
             and (not s.get("profiles") or set(s["profiles"]) & set(profiles))}
 
 
@@ -178,13 +189,18 @@ def test_compose_files_are_complete_and_consistent():
                 else:
                     assert src in model["volumes"], f"service {name} uses undeclared volume {src}"
             for dep, cond in (svc.get("depends_on") or {}).items():
-                assert dep in services and cond["condition"] in ("service_healthy", "service_started"), (name, dep)
+                assert dep in services and cond["condition"] in ("service_healthy", "service_started",
+                                                                 "service_completed_successfully"), (name, dep)
+                if cond["condition"] == "service_completed_successfully":
+                    assert dep in setup_services(model), (name, dep)
 
         rname, router = router_service(model)
         assert router["image"] == f"eclipse/zenoh:{importlib.metadata.version('eclipse-zenoh')}"
         assert "healthcheck" in router
-        config_file = host_path(router, router["command"][router["command"].index("-c") + 1], {})
-        assert Path(config_file).is_file(), config_file
+        # (secured: written into a volume by the setup service: test_secure_compose_makes_fresh_credentials)
+        config_file = host_path(router, router["command"][router["command"].index("-c") + 1],
+                                {v: Path("/nonexistent") for v in model["volumes"]})
+        assert Path(config_file).is_file() or Path(config_file).parent == Path("/nonexistent"), config_file
 
         parser = build_parser()
         zs = zenrl_services(model, profiles=("gpu", "tools"))
@@ -200,11 +216,14 @@ def test_compose_files_are_complete_and_consistent():
             named = {v: Path("/nonexistent") for v in model["volumes"]}
             cfg = load_config(host_path(svc, args.config, named), environ=env)
             assert cfg.run_id and cfg.runs_dir == "/runs"
-            if "ZENRL__TRANSPORT__CLIENT_CONFIG" in env:
-                assert Path(host_path(svc, env["ZENRL__TRANSPORT__CLIENT_CONFIG"], named)).is_file(), name
+            for var in ("ZENRL__TRANSPORT__CLIENT_CONFIG", "ZENRL_ACTOR_LOGINS"):
+                if var in env:  # in the volume the setup service writes (test_secure_compose_makes_fresh_credentials)
+                    assert Path("/nonexistent") in Path(host_path(svc, env[var] + "/x", named)).parents, (name, var)
             if svc.get("restart") != "no":
                 assert svc.get("restart") in ("always", "unless-stopped", "on-failure"), name
 
+        for name, svc in setup_services(model).items():
+            parser.parse_args(svc["command"])
         actor = zs["actor"]
         assert "--slot" not in actor["command"] and "--id" not in actor["command"]
         assert "container_name" not in actor and "ports" not in actor, "actors must be scalable"
@@ -214,21 +233,61 @@ def test_compose_files_are_complete_and_consistent():
         assert zs["learner-gpu"]["deploy"]["resources"]["reservations"]["devices"][0]["capabilities"] == ["gpu"]
 
 
-def test_secure_credentials_match_router_users_and_acl():
+def test_secure_compose_makes_fresh_credentials(tmp_path):
+    """The secured compose file makes its credentials on the first `up` (the one-shot
+    `credentials` service, which the router waits for) and every service reads its login from
+    that volume: no service mounts the repository's development passwords. Running the service's
+    command writes exactly the files the router and the services are given."""
     import zenoh
 
-    users = dict(line.split(":", 1) for line in (ZENOH_DIR / "users.txt").read_text().split())
-    acl = json.loads(zenoh.Config.from_file(str(ZENOH_DIR / "router-secure.json5")).get_json("access_control"))
-    assert acl["enabled"] and acl["default_permission"] == "deny"
-    rule_ids = [r["id"] for r in acl["rules"]]
-    assert len(rule_ids) == len(set(rule_ids)), "duplicate rule ids"
-    assert {r for p in acl["policies"] for r in p["rules"]} == set(rule_ids), "a rule is unused or undefined"
-    acl_users = {u for s in acl["subjects"] for u in s["usernames"]}
-    assert acl_users == set(users)
-    for svc in zenrl_services(load_compose(COMPOSE, SECURE), profiles=("gpu", "tools")).values():
-        client = host_path(svc, svc["environment"]["ZENRL__TRANSPORT__CLIENT_CONFIG"], {})
-        auth = json.loads(zenoh.Config.from_file(client).get_json("transport/auth/usrpwd"))
-        assert users.get(auth["user"]) == auth["password"], client
+    from zenrl.cli import build_parser
+    from zenrl.identity import is_dev_password, make_credentials, read_users
+
+    model = load_compose(COMPOSE, SECURE)
+    (setup_name, setup), = setup_services(model).items()
+    args = build_parser().parse_args(setup["command"])
+    assert args.func.__name__ == "cmd_credentials" and not args.dev and not args.force
+    out_volume = next(parse_volume(v)[0] for v in setup["volumes"] if parse_volume(v)[1] == args.out)
+    assert out_volume in model["volumes"]
+
+    def in_credentials(svc: dict[str, Any], path: str) -> str:
+        """``path`` of ``svc`` as a file name in the credentials volume (or fail)."""
+        for spec in svc["volumes"]:
+            src, target = parse_volume(spec)
+            if path.startswith(target.rstrip("/") + "/"):
+                assert src == out_volume, (path, spec)
+                return path[len(target.rstrip("/")) + 1:]
+        raise AssertionError(f"{path} is not in a volume")
+
+    # the router: waits for the set, reads its config and users file from it
+    rname, router = router_service(model)
+    assert router["depends_on"][setup_name]["condition"] == "service_completed_successfully"
+    creds = tmp_path / "credentials"
+    templates = host_path(setup, args.templates, {})
+    made = make_credentials(templates, creds, args.actors, ca=args.ca, users_file=args.users_file)
+    assert made["written"] and args.actors >= 2
+    router_cfg = in_credentials(router, router["command"][router["command"].index("-c") + 1])
+    users_path = json.loads(zenoh.Config.from_file(str(creds / router_cfg)).get_json("transport/auth/usrpwd/dictionary_file"))
+    users = read_users(creds / in_credentials(router, users_path))
+    assert not any(is_dev_password(p) for p in users.values())
+    # every zenrl service: its login from that volume (actors: the pool of actor logins)
+    for name, svc in zenrl_services(model, profiles=("gpu", "tools", "monitoring")).items():
+        env = svc["environment"]
+        assert not any("deploy/zenoh/users.txt" in v or "deploy/zenoh/client-" in v for v in svc["volumes"]), name
+        if name == "actor":
+            pool = creds / in_credentials(svc, env["ZENRL_ACTOR_LOGINS"] + "/x")
+            logins = sorted(pool.parent.glob("client-actor-*.json5"))
+            assert len(logins) == args.actors, name
+            files = logins
+        else:
+            files = [creds / in_credentials(svc, env["ZENRL__TRANSPORT__CLIENT_CONFIG"])]
+        for f in files:
+            auth = json.loads(zenoh.Config.from_file(str(f)).get_json("transport/auth/usrpwd"))
+            assert users.get(auth["user"]) == auth["password"], (name, f.name)
+            ca = json.loads(zenoh.Config.from_file(str(f)).get_json("transport/link/tls/root_ca_certificate"))
+            assert host_path(svc, ca, {}) == str(CERTS_DIR / "ca.pem"), (name, ca)
+    acl = json.loads(zenoh.Config.from_file(str(creds / router_cfg)).get_json("access_control"))
+    assert {u for s in acl["subjects"] for u in (s.get("usernames") or [])} == set(users)
 
 
 def test_dockerfile_installs_every_package():
@@ -309,6 +368,9 @@ class LocalCluster:
         for p in self.named.values():
             p.mkdir(parents=True, exist_ok=True)
         self.port = free_port()
+        self._actor_logins: Path | None = None
+        for name, svc in setup_services(self.model).items():  # before the router, as compose does
+            self._run_setup(name, svc)
         self.router_name, router = router_service(self.model)
         self._router = self._open_router(router)
         self.services = zenrl_services(self.model, profiles=("tools",))
@@ -335,6 +397,16 @@ class LocalCluster:
                 cfg.insert_json5(key, json.dumps(self._path(svc, value)))
         cfg.insert_json5("plugins", "{}")  # zenohd's REST plugin (health check) is not loadable here
         return zenoh.open(cfg)
+
+    def _run_setup(self, name: str, svc: dict[str, Any]) -> None:
+        import sys
+
+        args = [self._map(svc, str(a)) for a in svc["command"]]
+        if "--owner" in args:  # the container's root chowns to the services' user; not here
+            i = args.index("--owner")
+            del args[i:i + 2]
+        r = subprocess.run([sys.executable, "-m", "zenrl.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, f"setup service {name}: {r.stderr[-2000:]}"
 
     def _endpoint(self, router_proto: str) -> str:
         return f"{router_proto}/127.0.0.1:{self.port}"
@@ -363,7 +435,19 @@ class LocalCluster:
         env = {k: self._map(svc, str(v)) for k, v in svc.get("environment", {}).items()}
         if "ZENRL__TRANSPORT__CLIENT_CONFIG" in env:
             env["ZENRL__TRANSPORT__CLIENT_CONFIG"] = self._client_config(svc, svc["environment"]["ZENRL__TRANSPORT__CLIENT_CONFIG"])
+        if "ZENRL_ACTOR_LOGINS" in env:
+            env["ZENRL_ACTOR_LOGINS"] = str(self._logins(svc, svc["environment"]["ZENRL_ACTOR_LOGINS"]))
         return env
+
+    def _logins(self, svc: dict[str, Any], pool: str) -> Path:
+        """The pool of actor logins with container paths mapped: one copy that every actor
+        process of this cluster shares (so that each takes a different login, as containers do)."""
+        if self._actor_logins is None:
+            self._actor_logins = self.tmp / "actor-logins"
+            self._actor_logins.mkdir()
+            for f in Path(self._path(svc, pool)).glob("client-actor-*.json5"):
+                Path(self._client_config(svc, str(f))).rename(self._actor_logins / f.name)
+        return self._actor_logins
 
     def service_args(self, name: str) -> list[str]:
         svc = self.services[name]
@@ -635,6 +719,17 @@ class DockerCluster:
         if r.returncode != 0:
             raise AssertionError(docker_output(r))
 
+    def login(self, name: str, out_dir: Path) -> str:
+        """``client-<name>.json5`` of the credentials the secured cluster made (read from its
+        volume), with the CA path mapped to this machine, as a file for ``transport.client_config``."""
+        r = self.compose("run", "--rm", "-T", "--no-deps", "--entrypoint", "cat", "credentials",
+                         f"/credentials/client-{name}.json5", timeout=180)
+        doc = json.loads(r.stdout)
+        doc["transport"]["link"]["tls"]["root_ca_certificate"] = str(CERTS_DIR / "ca.pem")
+        path = out_dir / f"client-{name}-{self.project}.json"
+        path.write_text(json.dumps(doc))
+        return str(path)
+
     def cleanup(self) -> None:
         self.compose("down", "-v", "--remove-orphans", timeout=300, check=False)
 
@@ -654,6 +749,8 @@ def _updates_at_resume(log: str) -> list[int]:
     return [int(n) for n in re.findall(r"resumed from \S*ckpt-\d+\.pt: (\d+) updates", log)]
 
 
+# the first of these tests also waits for the module's image build (docker_images, up to 30 min)
+@pytest.mark.timeout(2400)
 def test_docker_cluster_up_scale_resume_crash_down(docker_images, run_id):
     """The plain cluster on a real engine: up (first update within 60 s), status, scale to 4
     actors, stop + up resumes, a crashed learner process is restarted and resumes, down."""
@@ -728,9 +825,12 @@ def test_docker_cluster_up_scale_resume_crash_down(docker_images, run_id):
         cluster.cleanup()
 
 
+@pytest.mark.timeout(2400)
 def test_docker_secure_cluster_refuses_strangers_and_forged_weights(docker_images, run_id, tmp_path):
-    """The secured cluster on a real engine: it trains; a client without credentials is refused;
-    an actor's credentials cannot publish weights."""
+    """The secured cluster on a real engine: the first `up` makes fresh credentials; it trains;
+    a client without credentials, or with the repository's development password, is refused; an
+    actor's login cannot publish weights, nor transitions as another actor; `--scale actor=3`
+    gives three distinct identities (actor-0, actor-1, actor-2 on slots 0, 1, 2)."""
     from tests.integration.test_secure_router import Inbox, client_config_file
     from zenrl.common.errors import TransportError
     from zenrl.common.protocol import Keys
@@ -742,31 +842,52 @@ def test_docker_secure_cluster_refuses_strangers_and_forged_weights(docker_image
     nodes: list[Any] = []
     try:
         cluster.compose("up", "-d", "--build", timeout=900)
-        mon = Monitor(cluster.endpoint, run_id, str(client_config_file("monitor", CERTS_DIR, tmp_path)))
+        mon = Monitor(cluster.endpoint, run_id, cluster.login("monitor", tmp_path))
         nodes.append(mon)
         wait_for(lambda: mon.updates() >= 1, 90, "the first learner update", cluster, "learner")
         roles = _wait_roles(cluster, lambda r: r.count("actor") == 2 and {"learner", "replay", "evaluator"} <= set(r),
                             90, "status listing every process")
         assert roles.count("actor") == 2
 
-        with pytest.raises(TransportError):
-            Node(cluster.endpoint, connect_timeout_s=0.0,
-                 config_file=str(client_config_file("actor", CERTS_DIR, tmp_path, drop_auth=True))).close()
+        # no credentials, or the repository's development password: refused
+        for cfg in (client_config_file("actor-0", CERTS_DIR, tmp_path, drop_auth=True),
+                    client_config_file("actor-0", CERTS_DIR, tmp_path)):
+            with pytest.raises(TransportError):
+                Node(cluster.endpoint, connect_timeout_s=0.0, config_file=str(cfg)).close()
 
         k = Keys(run_id)
-        actor = Node(cluster.endpoint, 30.0, config_file=str(client_config_file("actor", CERTS_DIR, tmp_path)))
-        watcher = Node(cluster.endpoint, 30.0, config_file=str(client_config_file("evaluator", CERTS_DIR, tmp_path)))
-        nodes += [actor, watcher]
-        inbox = Inbox()
+        actor = Node(cluster.endpoint, 30.0, config_file=cluster.login("actor-0", tmp_path))
+        watcher = Node(cluster.endpoint, 30.0, config_file=cluster.login("evaluator", tmp_path))
+        replay_view = Node(cluster.endpoint, 30.0, config_file=cluster.login("replay", tmp_path))
+        nodes += [actor, watcher, replay_view]
+        inbox, at_replay = Inbox(), Inbox()
         watcher.subscribe(k.weights, inbox)
         watcher.subscribe(k.stats_all, inbox)
+        replay_view.subscribe(k.transitions_all, at_replay)
         wait_for(lambda: inbox.payloads("weights"), 60, "the learner's weights at the watcher", cluster, "learner")
-        probe = k.stats("actor", f"probe-{uuid.uuid4().hex[:6]}")
+        wait_for(lambda: at_replay.payloads("transitions/actor-1"), 60, "actor-1's transitions", cluster, "actor")
+        probe = k.stats("actor", "actor-0")
         actor.put(k.weights, b"forged")
-        # the same session's later message on an allowed key: once it arrived, the forged one would have
+        actor.put(k.transitions("actor-1"), b"forged")
+        # the same session's later message on an allowed key: once it arrived, the forged ones would have
         wait_for(lambda: actor.put(probe, b"sentinel") or inbox.has(probe.split("/", 2)[2], b"sentinel"), 30,
                  "the actor's sentinel stats at the watcher", cluster, "actor")
         assert b"forged" not in inbox.payloads("weights"), "an actor's credentials published weights"
+        assert b"forged" not in at_replay.payloads("transitions/actor-1"), "actor-0's login published as actor-1"
+
+        # a third replica takes the next free login: three identities on three slots
+        cluster.compose("up", "-d", "--no-recreate", "--scale", "actor=3")
+        with mon.lock:
+            mon.actors.clear()
+        want = {"actor-0": 0, "actor-1": 1, "actor-2": 2}
+
+        def three_identities() -> bool:
+            with mon.lock:
+                return {i: v.get("slot") for i, v in mon.actors.items() if i in want} == want
+
+        wait_for(three_identities, 120, f"stats of {sorted(want)} on slots 0, 1, 2", cluster, "actor")
+        with mon.lock:
+            assert set(mon.actors) == set(want), f"actor ids {sorted(mon.actors)}"
     finally:
         for n in nodes:
             n.close()

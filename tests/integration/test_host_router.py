@@ -29,8 +29,9 @@ def _router_file(src: str, tmp: Path, certs: Path | None, name: str) -> Path:
     doc = json.loads(cfg.get_json("transport"))
     if certs is not None:
         tls = doc["link"]["tls"]
-        tls["listen_private_key"] = str(certs / "router-key.pem")
-        tls["listen_certificate"] = str(certs / "router.pem")
+        cert = Path(tls["listen_certificate"]).stem  # router (central) or host-router
+        tls["listen_private_key"] = str(certs / f"{cert}-key.pem")
+        tls["listen_certificate"] = str(certs / f"{cert}.pem")
         tls["root_ca_certificate"] = str(certs / "ca.pem")
         doc["auth"]["usrpwd"]["dictionary_file"] = str(ZENOH_DIR / "users.txt")
     cfg.insert_json5("transport", json.dumps(doc))
@@ -41,7 +42,8 @@ def _router_file(src: str, tmp: Path, certs: Path | None, name: str) -> Path:
 
 
 def _start_router(procs, name: str, listen: str, config: Path | None = None, connect: str | None = None):
-    args = ["router", "--listen", listen, "--log-level", "WARNING"]
+    # the committed configs admit the development passwords (users.txt): allowed here explicitly
+    args = ["router", "--listen", listen, "--log-level", "WARNING", "--allow-dev-credentials"]
     if config is not None:
         args += ["--router-config", str(config)]
     if connect is not None:
@@ -87,10 +89,11 @@ def test_secured_host_router(procs, tmp_path):
 
     # TLS and passwords hold on the host router too
     with pytest.raises(TransportError):
-        Node(host, 0.0, config_file=str(client_config_file("actor", certs, tmp_path, password="wrong"))).close()
+        Node(host, 0.0, config_file=str(client_config_file("actor-0", certs, tmp_path, password="wrong"))).close()
 
     learner, replay = node("learner", central), node("replay", central)
-    actor, evaluator = node("actor", host), node("evaluator", host)
+    actor, evaluator = node("actor-0", host), node("evaluator", host)
+    impostors: list[Node] = []
     try:
         at_actor, at_evaluator, at_learner, at_replay = Inbox(), Inbox(), Inbox(), Inbox()
         actor.subscribe(k.weights, at_actor)
@@ -105,25 +108,44 @@ def test_secured_host_router(procs, tmp_path):
         wait_until(lambda: learner.put(k.weights, b"real") or (at_actor.has("weights", b"real")
                                                                 and at_evaluator.has("weights", b"real")),
                    30, "the learner's weights at the actor and the evaluator behind the host router", 0.2)
-        wait_until(lambda: actor.put(k.stats("actor", "a1"), b"warm-up") or (
-            at_learner.has("stats/actor/a1") and at_evaluator.has("stats/actor/a1")),
+        wait_until(lambda: actor.put(k.stats("actor", "actor-0"), b"warm-up") or (
+            at_learner.has("stats/actor/actor-0") and at_evaluator.has("stats/actor/actor-0")),
             30, "the actor's stats at the learner (central) and the evaluator (same host)", 0.2)
+
+        # clients of the host router (login actor-1) that take a Zenoh id of their choosing (the
+        # host router once trusted the central router by its id). With the link to the central
+        # router up (the weights above crossed it), the central router's own id is refused, and
+        # the fixed id it used to have buys nothing beyond the login (below: no weights, no other
+        # actor's transitions)
+        (central_zid,) = [str(z) for z in learner.session.info.routers_zid()]
+        impostor_config = str(client_config_file("actor-1", certs, tmp_path))
+        with pytest.raises(TransportError):
+            Node(host, 3.0, config_file=impostor_config, extra={"id": central_zid}).close()
+        impostor = Node(host, 20.0, config_file=impostor_config, extra={"id": "5a3e71c0ffee0001"})
+        impostors.append(impostor)
+        wait_until(lambda: impostor.put(k.stats("actor", "actor-1"), b"warm-up") or at_learner.has("stats/actor/actor-1"),
+                   30, "the impostor's own stats at the learner", 0.2)
 
         # forged weights and priorities, then allowed messages on the same link (in order): once
         # the sentinel arrived at both, the forged ones would have too
-        actor.put(k.weights, b"forged")
-        actor.put(k.priorities, b"forged")
-        actor.put(k.transitions("a1"), b"transitions")
-        actor.put(k.stats("actor", "a1"), b"sentinel")
-        wait_until(lambda: at_learner.has("stats/actor/a1", b"sentinel") and at_evaluator.has("stats/actor/a1", b"sentinel"),
-                   20, "the actor's sentinel stats")
-        wait_until(lambda: at_replay.has("transitions/a1", b"transitions"), 20, "the actor's transitions at the replay")
+        for n in (actor, *impostors):
+            n.put(k.weights, b"forged")
+            n.put(k.priorities, b"forged")
+            n.put(k.transitions("actor-0" if n is not actor else "actor-1"), b"forged")  # another actor's
+        actor.put(k.transitions("actor-0"), b"transitions")
+        for n in impostors:
+            n.put(k.stats("actor", "actor-1"), b"impostor-sentinel")
+        actor.put(k.stats("actor", "actor-0"), b"sentinel")
+        wait_until(lambda: at_learner.has("stats/actor/actor-0", b"sentinel") and at_evaluator.has("stats/actor/actor-0", b"sentinel")
+                   and at_learner.has("stats/actor/actor-1", b"impostor-sentinel"), 20, "the actors' sentinel stats")
+        wait_until(lambda: at_replay.has("transitions/actor-0", b"transitions"), 20, "the actor's transitions at the replay")
+        assert not [key for key, p in at_replay.items if p == b"forged"], "another actor's transitions reached the replay"
         assert b"forged" not in at_learner.payloads("weights"), "an actor's weights crossed to the central router"
         assert b"forged" not in at_evaluator.payloads("weights"), "an actor's weights reached a client of its own host router"
         assert not at_replay.payloads("replay/priorities"), "an actor's priority update reached the replay"
         assert actor.query(k.weights_query, timeout_s=5.0) == b"weights-from-learner"
     finally:
-        for n in (actor, evaluator, learner, replay):
+        for n in (actor, evaluator, learner, replay, *impostors):
             n.close()
 
 
@@ -155,7 +177,8 @@ def test_router_connect_flag_replaces_config_endpoints(tmp_path):
 def test_host_router_acl_is_the_central_one_for_local_clients():
     """host-router-secure.json5 repeats the central router's per-role rules (for the clients on
     its host): they must not drift apart. It adds only the link to the central router, named by
-    the central router's id; the central router adds only the host routers' policy."""
+    the common name of the central router's certificate (gen-certs.sh), never by a Zenoh id; the
+    central router adds only the host routers' policy."""
     import zenoh
 
     def load(name: str) -> tuple[dict, zenoh.Config]:
@@ -171,7 +194,10 @@ def test_host_router_acl_is_the_central_one_for_local_clients():
     assert [p for p in host["policies"] if p["id"] != "central-router"] == \
         [p for p in central["policies"] if p["id"] != "host-router"]
     upstream = next(s for s in host["subjects"] if s["id"] == "central-router")
-    assert upstream["zids"] == [json.loads(central_cfg.get_json("id"))]
+    assert upstream["cert_common_names"] == ["zenrl-central-router"]
+    assert not any(s.get("zids") for s in host["subjects"] + central["subjects"]), "a subject trusted by Zenoh id"
+    assert "/CN=$2" in (ZENOH_DIR / "gen-certs.sh").read_text() and "issue router zenrl-central-router" in \
+        (ZENOH_DIR / "gen-certs.sh").read_text()
     # the host router's own login is a user of the central router, and that user's policy
     # allows no weights, priorities or sample answers
     users = dict(line.split(":", 1) for line in (ZENOH_DIR / "users.txt").read_text().split())

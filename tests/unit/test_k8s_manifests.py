@@ -2,10 +2,13 @@
 validates offline against the Kubernetes schemas (kubernetes-validate, strict), and holds what
 docs/kubernetes.md promises: probes from the processes' own health (valid `zenrl.health`
 arguments for the container's role), resource requests, the learner resuming from its volume,
-scalable actors, each pod only its own credentials, no secret in the repository."""
+scalable actors, each pod only its own credentials (an actor pod only its own login), no
+secret in the repository."""
 
 from __future__ import annotations
 
+import json
+import os
 import shlex
 import shutil
 import subprocess
@@ -45,8 +48,8 @@ def tree(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("k8s")
     shutil.copytree(ROOT / "deploy" / "k8s", root / "deploy" / "k8s", ignore=shutil.ignore_patterns("files"))
     shutil.copytree(ROOT / "deploy" / "zenoh", root / "deploy" / "zenoh", ignore=shutil.ignore_patterns("certs"))
-    subprocess.run(["bash", str(root / "deploy/k8s/overlays/secured/prepare.sh"), "zenrl"], check=True,
-                   capture_output=True, timeout=120)
+    subprocess.run(["bash", str(root / "deploy/k8s/overlays/secured/prepare.sh"), "zenrl", "3"], check=True,
+                   capture_output=True, timeout=120, env={**os.environ, "PYTHON": sys.executable})
     return root / "deploy" / "k8s"
 
 
@@ -100,7 +103,8 @@ def test_components_probes_and_requests(tree, overlay):
 
     docs = render(tree, overlay)
     w = workloads(docs)
-    assert w["zenrl-router"]["kind"] == "Deployment" and w["zenrl-actor"]["kind"] == "Deployment"
+    assert w["zenrl-router"]["kind"] == "Deployment" and w["zenrl-actor"]["kind"] == "StatefulSet"
+    assert w["zenrl-actor"]["spec"]["podManagementPolicy"] == "Parallel"
     assert w["zenrl-replay"]["kind"] == "StatefulSet" and w["zenrl-learner"]["kind"] == "StatefulSet"
     for name, d in w.items():
         for c in d["spec"]["template"]["spec"]["containers"]:
@@ -153,22 +157,55 @@ def _generated(docs: list[dict], base: str) -> str:
     return names[0]
 
 
-def test_secured_each_pod_gets_only_its_own_credentials(tree):
+def test_secured_each_pod_gets_only_its_own_credentials(tree, tmp_path):
+    from zenrl.common.transport import config_section
+    from zenrl.identity import is_dev_password, read_users
+
     docs = render(tree, "secured")
     secrets = by_kind(docs, "Secret")
     for name, role in ROLES.items():
         spec = workloads(docs)[name]["spec"]["template"]["spec"]
         used = {v["secret"]["secretName"] for v in spec["volumes"] if "secret" in v}
-        assert used == {_generated(docs, "zenrl-ca"), _generated(docs, f"zenrl-client-{role}")}, (name, used)
+        own = "zenrl-actor-logins" if role == "actor" else f"zenrl-client-{role}"
+        assert used == {_generated(docs, "zenrl-ca"), _generated(docs, own)}, (name, used)
         assert set(secrets[_generated(docs, "zenrl-ca")]["data"]) == {"ca.pem"}
         c = container(docs, name, role)
         cfg_path = next(e["value"] for e in c["env"] if e["name"] == "ZENRL__TRANSPORT__CLIENT_CONFIG")
         mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
         vol = mounts[str(Path(cfg_path).parent)]
-        secret = next(v["secret"]["secretName"] for v in spec["volumes"] if v["name"] == vol)
-        assert Path(cfg_path).name in secrets[secret]["data"]
         assert mounts["/certs"] == next(v["name"] for v in spec["volumes"] if v.get("secret", {}).get("secretName")
                                         == _generated(docs, "zenrl-ca"))
+        if role != "actor":
+            secret = next(v["secret"]["secretName"] for v in spec["volumes"] if v["name"] == vol)
+            assert Path(cfg_path).name in secrets[secret]["data"]
+            continue
+        # an actor container never mounts the Secret of every actor login: its init container
+        # copies the pod's own login (by its ordinal) into a memory volume the actor reads
+        logins_vol = next(v["name"] for v in spec["volumes"] if v.get("secret", {}).get("secretName")
+                          == _generated(docs, own))
+        assert logins_vol not in mounts.values()
+        assert next(v for v in spec["volumes"] if v["name"] == vol)["emptyDir"]["medium"] == "Memory"
+        (init,) = spec["initContainers"]
+        imounts = {m["name"]: m["mountPath"] for m in init["volumeMounts"]}
+        env = {e["name"]: e for e in init["env"]}
+        assert env["POD_INDEX"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.labels['apps.kubernetes.io/pod-index']"
+        # the init container's command, run here on the generated Secret's file for pod index 2
+        code = init["command"][2].replace(f"{imounts[logins_vol]}/", str(tree / "overlays/secured/files") + "/")
+        code = code.replace(f"{imounts[vol]}/", str(tmp_path) + "/")
+        subprocess.run([sys.executable, "-c", code], check=True, env={**os.environ, "POD_INDEX": "2"}, timeout=60)
+        out = tmp_path / Path(cfg_path).name
+        auth = config_section(str(out), "transport/auth/usrpwd")
+        users = read_users(tree / "overlays/secured/files/users.txt")
+        assert auth["user"] == "actor-2" and users["actor-2"] == auth["password"] and not is_dev_password(auth["password"])
+        r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "POD_INDEX": "3"}, capture_output=True,
+                           text=True, timeout=60)
+        assert r.returncode != 0 and "no login actor-3" in r.stderr
+        for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+            assert c[probe]["exec"]["command"][5:7] == ["--id", "actor-{ordinal}"], probe
+    # the router admits exactly the logins prepare.sh made, for 3 actors
+    acl = json.loads(by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-router-config")]["data"]["router-secure.json5"])
+    assert {u for s in acl["access_control"]["subjects"] for u in (s.get("usernames") or [])} == set(users)
+    assert {"actor-0", "actor-1", "actor-2"} < set(users) and "actor-3" not in users
     router = workloads(docs)["zenrl-router"]["spec"]["template"]["spec"]
     rargs = router["containers"][0]["args"]
     cfg = Path(rargs[rargs.index("--router-config") + 1])
@@ -230,7 +267,7 @@ def test_pods_are_hardened_and_only_zenrl_pods_reach_the_router(tree, overlay):
             bad.append(f"{name}: no RuntimeDefault seccomp profile")
         if not spec.get("securityContext", {}).get("runAsNonRoot"):
             bad.append(f"{name}: may run as root")
-        for c in spec["containers"]:
+        for c in spec["containers"] + spec.get("initContainers", []):
             sc = c.get("securityContext", {})
             if sc.get("allowPrivilegeEscalation") is not False:
                 bad.append(f"{name}/{c['name']}: privilege escalation allowed")

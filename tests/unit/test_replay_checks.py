@@ -189,15 +189,16 @@ def test_new_options_are_validated_with_the_bad_value_named(option, value):
 
 
 def test_source_ledger_caps_names_but_never_stops_quarantining():
-    """Past max_sources no new name is counted (bounded memory), yet every source that keeps
-    failing is still quarantined; internal errors are counted by type, the first one flagged."""
+    """Past max_sources a new name displaces the least rejected one (bounded memory, the heaviest
+    kept), and every source that keeps failing is still quarantined; internal errors are counted
+    by type, the first one flagged."""
     from zenrl.common.quarantine import SourceLedger
 
     t = [0.0]
     led = SourceLedger(Quarantine(2, 10.0, 60.0, clock=lambda: t[0]), max_sources=3)
     for s in ("a", "b", "c"):
         assert led.rejected(s, "action_range") is False
-    assert led.rejected("d", "action_range") is False and "d" not in led.by_source
+    assert led.rejected("d", "action_range") is False and "d" in led.by_source and len(led.by_source) == 3
     assert led.rejected("d", "action_range") is True, "a source past the name cap is still quarantined"
     assert led.quarantine.is_quarantined("d")
     assert led.internal_error(ValueError("x")) is True and led.internal_error(ValueError("y")) is False

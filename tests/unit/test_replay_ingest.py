@@ -29,13 +29,36 @@ def _payload(seq=0, policy_version=0, actor="a0"):
     return P.TransitionBatch(actor, policy_version, seq, data).encode()
 
 
-#: a policy version the wire's "int" admits but an int64 column cannot hold (OverflowError)
+#: a policy version past int64 (msgpack carries up to 2**64-1): refused at decode (its range)
 HUGE = 2**64 - 1
 
 
-def test_an_internal_error_costs_one_chunk_and_is_counted_by_type():
+def _raise_for_evil(monkeypatch, exc=OverflowError):
+    """Something between receipt and insert raises an exception other than the protocol's own for
+    the chunks of actor ``evil`` (what an unforeseen input would do)."""
+    from zenrl.replay import ingest
+
+    real = ingest.Chunk.of
+
+    def of(payload, msg, source=""):
+        if msg.actor_id == "evil":
+            raise exc("unforeseen")
+        return real(payload, msg, source)
+
+    monkeypatch.setattr(ingest.Chunk, "of", staticmethod(of))
+
+
+def test_an_integer_past_its_range_is_a_protocol_rejection():
     svc = _service()
-    n = svc.ingest_many([(_payload(0), "zenrl/r/transitions/a0"), (_payload(1, HUGE), "zenrl/r/transitions/evil"),
+    assert svc.ingest_many([(_payload(1, HUGE), "zenrl/r/transitions/evil"), (_payload(2), "zenrl/r/transitions/a0")]) == B
+    v = svc.stats_values()
+    assert v["rejected_field"] == 1 and "rejected_internal" not in v and v["rejected_from/evil"] == 1
+
+
+def test_an_internal_error_costs_one_chunk_and_is_counted_by_type(monkeypatch):
+    _raise_for_evil(monkeypatch)
+    svc = _service()
+    n = svc.ingest_many([(_payload(0), "zenrl/r/transitions/a0"), (_payload(1, actor="evil"), "zenrl/r/transitions/evil"),
                          (_payload(2), "zenrl/r/transitions/a0")])
     assert n == 2 * B and svc.buffer.inserts_total == 2 * B
     v = svc.stats_values()
@@ -43,7 +66,7 @@ def test_an_internal_error_costs_one_chunk_and_is_counted_by_type():
     assert v["rejected_from/evil"] == 1
     # the first chunk of all may be the bad one: storage is then allocated from the next
     fresh = _service()
-    assert fresh.ingest_many([(_payload(1, HUGE), "evil"), (_payload(2), "a0")]) == B
+    assert fresh.ingest_many([(_payload(1, actor="evil"), "evil"), (_payload(2), "a0")]) == B
 
 
 def test_an_insert_that_raises_is_retried_chunk_by_chunk(monkeypatch):
@@ -95,13 +118,14 @@ def _wait(cond, timeout_s=10.0):
         time.sleep(0.01)
 
 
-def test_the_ingest_thread_outlives_a_message_that_raises():
+def test_the_ingest_thread_outlives_a_message_that_raises(monkeypatch):
+    _raise_for_evil(monkeypatch)
     svc = _service()
     node, sup = FakeNode(), Supervisor()
     svc.start(node, sup)
     on_tx = node.subs[svc.keys.transitions_all]
     try:
-        on_tx(svc.keys.transitions("evil"), _payload(0, HUGE))
+        on_tx(svc.keys.transitions("evil"), _payload(0, actor="evil"))
         on_tx(svc.keys.transitions("a0"), _payload(1))
         _wait(lambda: svc.buffer is not None and svc.buffer.inserts_total == B)
         on_tx(svc.keys.transitions("a0"), _payload(2))

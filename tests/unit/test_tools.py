@@ -21,8 +21,8 @@ from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import ActorCritic, QNetwork, arch_fingerprint, num_actions, obs_spec
 from zenrl.common.checkpoints import A3CTrainingState, ApexTrainingState, training_state_class
-from zenrl.common.policy_io import (SnapshotLeague, load_policy, read_checkpoint, sampled_actions,
-                                    single_to_flat, wrap_selfplay)
+from zenrl.common.opponents import SnapshotLeague, wrap_opponents
+from zenrl.common.policy_io import load_policy, read_checkpoint, sampled_actions, single_to_flat
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
 from zenrl import tools
@@ -334,21 +334,21 @@ def test_selfplay_wrapper_plays_snapshots(ckpts, tmp_path):
     cfg = RunConfig.model_validate({"env": {"id": BW, "kwargs": SHORT_MATCH}, "runs_dir": str(tmp_path),
                                     "selfplay": {"enabled": True, "snapshot_prob": 1.0, "snapshot_interval_s": 1e-3}})
     envs = [make_env(cfg.env) for _ in range(2)]
-    wrapped = wrap_selfplay(envs, cfg, "sp", seed=0)
+    wrapped = wrap_opponents(envs, cfg, "sp", seed=0)
     try:
         _, info = wrapped[0].reset(seed=0)
-        assert info["opponent"] == "cheese"  # no snapshot yet: scripted only
+        assert info["opponent"] == "cheese" and wrapped[0].opponent == "cheese"  # no snapshot yet: scripted only
         make_checkpoint(tmp_path / "sp" / "checkpoints", BW, SHORT_MATCH, step=42)
-        league = wrapped[0].league
-        assert wrapped[1].league is league
+        pool = wrapped[0].pool
+        assert wrapped[1].pool is pool
         for w in wrapped:
             _, info = w.reset(seed=1)
-            assert info["opponent"] == "policy"
+            assert info["opponent"] == "policy" and w.opponent == "snapshot:ckpt-000000000042.pt"
             done = False
             while not done:
                 _, _, te, tr, info = w.step(0)
                 done = te or tr
-        assert [name for name, _ in league.snapshots] == ["ckpt-000000000042.pt"]
+        assert pool.names("snapshot") == ["snapshot:ckpt-000000000042.pt"]
         _, info = wrapped[0].reset(seed=2, options={"opponent": "cheese"})  # explicit choice wins
         assert info["opponent"] == "cheese"
     finally:

@@ -116,6 +116,19 @@ def _fmt_rate(r: dict[str, Any]) -> str:
     return f"{v:,.1f} {r.get('rate_unit', '/s')}" if v < 100 else f"{v:,.0f} {r.get('rate_unit', '/s')}"
 
 
+def _rejections(r: dict[str, Any], top: int = 3) -> str:
+    """``; rejected N (top: a 8, b 3); quarantined K: ...`` from a service's stats, or ``""``."""
+    n = r.get("rejected_total") or 0
+    if not n:
+        return ""
+    srcs = sorted(((k.split("/", 1)[1], v) for k, v in r.items() if k.startswith("rejected_from/") and isinstance(v, int)),
+                  key=lambda kv: -kv[1])[:top]
+    out = f"; rejected {n:,}" + (f" (top: {', '.join(f'{s} {c:,}' for s, c in srcs)})" if srcs else "")
+    if r.get("quarantined"):
+        out += f"; quarantined {r['quarantined']}: {str(r.get('quarantined_sources', ''))[:120]}"
+    return out
+
+
 def _detail(r: dict[str, Any], learner_version: int | None) -> str:
     role = r["role"]
     if role == "replay" and "size" in r:
@@ -123,7 +136,7 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
         if r.get("durable_degraded"):  # ingest goes on in memory; a restart would not restore it all
             size += (f", DURABLE LOG DEGRADED ({r.get('durable_error') or 'disk error'}; "
                      f"{r.get('durable_backlog_items', 0):,} items in memory only)")
-        return size
+        return size + _rejections(r)
     if role == "actor" and learner_version is not None and r.get("policy_version") is not None:
         return f"lag {learner_version - int(r['policy_version'])} versions"
     if role == "learner" and r.get("policy_lag") is not None:

@@ -75,6 +75,7 @@ def check_env(cfg: RunConfig) -> None:
     :class:`ConfigError` line instead of every child failing in its log."""
     from zenrl.common.env_factory import make_env
     from zenrl.common.networks import num_actions, obs_spec
+    from zenrl.common.opponents import check_opponents
     from zenrl.tools.loading import quiet_native_imports
 
     quiet_native_imports()  # pybullet's build-time banner is noise in the launcher's terminal
@@ -91,7 +92,10 @@ def check_env(cfg: RunConfig) -> None:
         obs_spec(env.observation_space)
         env.reset(seed=cfg.seed)
     except Exception as e:  # as above: the env's code, not ours
+        env.close()
         raise ConfigError(f"{where}: {_first_line(str(e)) or type(e).__name__}") from None
+    try:
+        check_opponents(cfg, env)  # every opponents.pool file loads and fits the env, before any child starts
     finally:
         env.close()
 

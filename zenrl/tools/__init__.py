@@ -2,7 +2,8 @@
 
 * ``zenrl evaluate`` (:mod:`~zenrl.tools.evaluation`): N episodes per opponent in parallel
   processes, wins / draws / losses with Wilson intervals, mean score difference or return with a
-  t interval (:mod:`~zenrl.tools.stats`).
+  t interval (:mod:`~zenrl.tools.stats`); ``--round-robin``: every pair of several policies and
+  bots, a pairwise table and Elo ratings (:mod:`zenrl.common.ratings`).
 * ``zenrl play`` (:mod:`~zenrl.tools.media`): one episode as a GIF (pillow) or MP4 (imageio).
 * ``zenrl plot`` (:mod:`~zenrl.tools.plotting`): learning curves from ``metrics.jsonl``.
 * ``zenrl export`` (:mod:`~zenrl.tools.torchscript`): the greedy policy as TorchScript.
@@ -13,8 +14,9 @@ optional extra ``viz``; a command that needs a missing one fails with a
 :class:`~zenrl.common.errors.ZenrlError` saying what to install.
 """
 
-from zenrl.tools.evaluation import (EpisodeResult, EpisodeRunner, Job, evaluate, make_jobs, render_table,
-                                    summarize)
+from zenrl.tools.evaluation import (EpisodeResult, EpisodeRunner, Job, PairJob, PairResult, RoundRobinRunner,
+                                    evaluate, make_jobs, render_round_robin, render_table, round_robin,
+                                    round_robin_jobs, summarize, summarize_round_robin)
 from zenrl.tools.loading import (MATCH_OPPONENTS, ExportedPlayer, env_config_for, is_exported, is_match_env,
                                  load_player, load_policy_env, print_json_line, quiet_native_imports,
                                  resolve_checkpoint)
@@ -23,7 +25,8 @@ from zenrl.tools.plotting import plot, read_metrics
 from zenrl.tools.stats import mean_ci, t975, wilson
 from zenrl.tools.torchscript import ExportedPolicy, export
 
-__all__ = ["EpisodeResult", "EpisodeRunner", "ExportedPlayer", "ExportedPolicy", "Job", "MATCH_OPPONENTS",
+__all__ = ["PairJob", "PairResult", "RoundRobinRunner", "render_round_robin", "round_robin", "round_robin_jobs",
+           "summarize_round_robin", "EpisodeResult", "EpisodeRunner", "ExportedPlayer", "ExportedPolicy", "Job", "MATCH_OPPONENTS",
            "env_config_for", "evaluate", "export", "is_exported", "is_match_env", "load_player", "load_policy_env", "make_jobs", "mean_ci", "play", "plot", "print_json_line",
            "quiet_native_imports", "read_metrics", "record_episode", "render_table", "resolve_checkpoint", "summarize",
            "t975", "wilson", "write_video"]

@@ -1,5 +1,7 @@
 """``zenrl evaluate``: N episodes (matches: per opponent, half as red, half as blue) in ``spawn``
-worker processes (no Zenoh), summarised with confidence intervals."""
+worker processes (no Zenoh), summarised with confidence intervals; and ``zenrl evaluate
+--round-robin``: every pair of a set of policies and bots plays N matches, summarised as a
+pairwise win / draw / loss table and Elo ratings (:mod:`zenrl.common.ratings`)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import numpy as np
 import torch
 
 from zenrl.common.errors import ZenrlError
+from zenrl.common.ratings import PairRecord, fit_ratings
 from zenrl.games.burgerwar.judge import match_outcome
 from zenrl.games.burgerwar.opponents import OPPONENT_NAMES
 from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_player, load_policy_env, quiet_native_imports,
@@ -277,3 +280,249 @@ def render_table(summary: Mapping[str, Any]):
     t.add_row("all", str(tot["episodes"]), f"{tot['wins']}/{tot['draws']}/{tot['losses']}",
               f"{tot['win_rate']:.0%} {_fmt_ci(tot['win_rate_ci95'], True)}", "", style="bold")
     return t
+
+
+# --------------------------------------------------------------------------------------------
+# Round robin
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PairJob:
+    """One round-robin match: players (bot names or policy files) ``red`` and ``blue``."""
+
+    index: int
+    seed: int
+    red: str
+    blue: str
+
+
+@dataclass
+class PairResult:
+    index: int
+    seed: int
+    red: str
+    blue: str
+    winner: str  # "red" | "blue" | "draw"
+    red_score: int
+    blue_score: int
+    length: int
+
+
+class RoundRobinRunner:
+    """Loads every policy of ``players`` once into one match env (made from the first policy's
+    env, with ``env_id`` / ``env_kwargs`` over it) and plays :class:`PairJob` matches. A policy
+    takes the env's agent seat and its opponent (a bot, or another policy through the env's
+    ``"policy"`` opponent) the other; each sees the match from its own side."""
+
+    def __init__(self, players: Sequence[str], env_id: str | None, env_kwargs: Mapping[str, Any] | None,
+                 allow_exported: bool = False) -> None:
+        torch.set_num_threads(1)
+        bots, files = split_opponents(players)
+        if not files:
+            raise ZenrlError("a round robin needs at least one policy file: scripted bots only play the opponent's seat")
+        first, self.env, _ = load_policy_env(files[0], env_id, env_kwargs, opponents=bots or ["idle"],
+                                             allow_exported=allow_exported)
+        if not is_match_env(self.env):
+            self.env.close()
+            raise ZenrlError(f"{files[0]}: a round robin needs a match env, not {self.env.spec.id if self.env.spec else self.env}")
+        self.policies = {files[0]: first}
+        try:
+            for f in files[1:]:
+                self.policies[f] = load_player(f, self.env.observation_space, self.env.action_space, allow_exported)
+        except ZenrlError:
+            self.env.close()
+            raise
+        self.switch = _Switch()
+        self.env.unwrapped.opponent_policy = self.switch
+
+    def run(self, job: PairJob) -> PairResult:
+        agent_side = "red" if job.red in self.policies else "blue"
+        agent, other = (job.red, job.blue) if agent_side == "red" else (job.blue, job.red)
+        player = self.policies[agent]
+        player.reset()
+        if other in self.policies:
+            self.switch.current = self.policies[other]
+            self.switch.current.reset()
+            options = {"opponent": "policy", "side": agent_side}
+        else:
+            options = {"opponent": other, "side": agent_side}
+        obs, info = self.env.reset(seed=job.seed, options=options)
+        n, done = 0, False
+        while not done:
+            obs, _, term, trunc, info = self.env.step(player(obs))
+            n += 1
+            done = term or trunc
+        outcome, mine, theirs = ((info["outcome"], info["my_score"], info["enemy_score"]) if "outcome" in info
+                                 else match_outcome(info))
+        other_side = "blue" if agent_side == "red" else "red"
+        winner = {"win": agent_side, "loss": other_side}.get(outcome, "draw")
+        red_score, blue_score = (mine, theirs) if agent_side == "red" else (theirs, mine)
+        return PairResult(job.index, job.seed, job.red, job.blue, winner, int(red_score), int(blue_score), n)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+_RR: RoundRobinRunner | None = None
+
+
+def _init_rr_worker(players: Sequence[str], env_id: str | None, env_kwargs: Mapping[str, Any] | None,
+                    allow_exported: bool) -> None:
+    global _RR
+    quiet_native_imports()
+    _RR = RoundRobinRunner(players, env_id, env_kwargs, allow_exported)
+
+
+def _run_pair(job: PairJob) -> PairResult:
+    if _RR is None:
+        raise RuntimeError("worker not initialised")
+    return _RR.run(job)
+
+
+def player_names(players: Sequence[str]) -> dict[str, str]:
+    """Display names: a file's base name (its path where two base names collide), a bot's name."""
+    base = {p: Path(p).name for p in players}
+    counts: dict[str, int] = {}
+    for b in base.values():
+        counts[b] = counts.get(b, 0) + 1
+    return {p: (b if counts[b] == 1 else p) for p, b in base.items()}
+
+
+def round_robin_jobs(players: Sequence[str], matches: int, seed: int) -> tuple[list[PairJob], list[tuple[str, str]]]:
+    """``matches`` per pair of players, alternating which of the two plays red, every match on a
+    seed of its own (``seed``, ``seed + 1``, ...); pairs of two bots are skipped (a bot only
+    plays the env's opponent seat). Returns (jobs, skipped pairs)."""
+    bots, _ = split_opponents(players)
+    jobs, skipped = [], []
+    for i, a in enumerate(players):
+        for b in players[i + 1:]:
+            if a in bots and b in bots:
+                skipped.append((a, b))
+                continue
+            for k in range(matches):
+                red, blue = (a, b) if k % 2 == 0 else (b, a)
+                jobs.append(PairJob(len(jobs), seed + len(jobs), red, blue))
+    return jobs, skipped
+
+
+def summarize_round_robin(players: Sequence[str], results: Iterable[PairResult], anchor: str | None = None,
+                          virtual_draws: float = 1.0) -> dict[str, Any]:
+    """Pairwise table (for each pair a < b in ``players`` order: a's wins, draws, b's wins, a's
+    win rate and score with Wilson 95% intervals, a's wins by side) and Elo ratings with 95%
+    intervals (:func:`~zenrl.common.ratings.fit_ratings`), JSON-ready."""
+    results = sorted(results, key=lambda r: r.index)
+    names = player_names(players)
+    pairs, records = [], []
+    for i, a in enumerate(players):
+        for b in players[i + 1:]:
+            rs = [r for r in results if {r.red, r.blue} == {a, b}]
+            if not rs:
+                continue
+            aw = sum((r.winner == "red") == (r.red == a) and r.winner != "draw" for r in rs)
+            d = sum(r.winner == "draw" for r in rs)
+            n = len(rs)
+            bw = n - aw - d
+            score2 = 2 * aw + d  # the score in half points: Wilson on 2n half-point trials
+            pairs.append({"a": names[a], "b": names[b], "matches": n, "a_wins": aw, "draws": d, "b_wins": bw,
+                          "a_win_rate": aw / n, "a_win_rate_ci95": list(wilson(aw, n)),
+                          "a_score": score2 / (2 * n), "a_score_ci95": list(wilson(score2, 2 * n)),
+                          "a_wins_as": {"red": sum(r.red == a and r.winner == "red" for r in rs),
+                                        "blue": sum(r.blue == a and r.winner == "blue" for r in rs)}})
+            records.append(PairRecord(names[a], names[b], aw, d, bw))
+    ratings = fit_ratings([names[p] for p in players], records,
+                          anchor=names.get(anchor, anchor) if anchor else None, virtual_draws=virtual_draws)
+    return {"kind": "round_robin", "players": [names[p] for p in players], "files": {names[p]: p for p in players},
+            "matches": len(results), "pairs": pairs, "anchor": names.get(anchor, anchor) if anchor else None,
+            "virtual_draws": virtual_draws,
+            "ratings": [{"player": r.player, "elo": r.elo, "elo_ci95": list(r.ci95), "elo_se": r.se,
+                         "matches": r.games, "score": r.score}
+                        for r in sorted(ratings.values(), key=lambda r: -r.elo if not math.isnan(r.elo) else math.inf)]}
+
+
+def round_robin(players: Sequence[str], matches: int = 20, env_id: str | None = None,
+                env_kwargs: Mapping[str, Any] | None = None, workers: int = 1, seed: int = 4_000_000,
+                progress: bool = True, allow_exported: bool = False, anchor: str | None = None) -> dict[str, Any]:
+    """Every pair of ``players`` (bot names and checkpoint / exported files, at least one file;
+    exported files only with ``allow_exported``) plays ``matches`` greedy matches, half with each
+    on red, each on a fresh seed from ``seed``; two bots do not meet. Returns
+    :func:`summarize_round_robin`'s dict plus ``env``, ``seed``, ``skipped`` pairs and the
+    per-match ``results``. ``anchor``: the player rated 0 (default: the mean rating is 0)."""
+    players = list(dict.fromkeys(players))
+    if len(players) < 2:
+        raise ZenrlError("a round robin needs at least two players")
+    if matches < 1:
+        raise ZenrlError(f"matches per pair must be at least 1, got {matches}")
+    if anchor is not None and anchor not in players and anchor not in player_names(players).values():
+        raise ZenrlError(f"--anchor {anchor!r} is not one of the players")
+    if anchor is not None and anchor not in players:
+        anchor = next(p for p, n in player_names(players).items() if n == anchor)
+    probe = RoundRobinRunner(players, env_id, env_kwargs, allow_exported)  # a mistake is one error here
+    env_name = probe.env.spec.id if probe.env.spec else str(env_id)
+    jobs, skipped = round_robin_jobs(players, matches, seed)
+    results: list[PairResult] = []
+    bar = task = None
+    if progress:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        bar = Progress(TextColumn("[bold]round robin"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       transient=False)
+        task = bar.add_task("", total=len(jobs))
+        bar.start()
+    try:
+        if workers <= 1:
+            try:
+                for j in jobs:
+                    results.append(probe.run(j))
+                    if bar is not None:
+                        bar.update(task, advance=1)
+            finally:
+                probe.close()
+        else:
+            probe.close()
+            ctx = mp.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_rr_worker,
+                                     initargs=(players, env_id, dict(env_kwargs or {}), allow_exported)) as pool:
+                for fut in as_completed([pool.submit(_run_pair, j) for j in jobs]):
+                    results.append(fut.result())
+                    if bar is not None:
+                        bar.update(task, advance=1)
+    finally:
+        if bar is not None:
+            bar.stop()
+    out = summarize_round_robin(players, results, anchor)
+    names = player_names(players)
+    out.update({"env": env_name, "seed": seed, "matches_per_pair": matches,
+                "skipped": [[names[a], names[b]] for a, b in skipped],
+                "results": [asdict(r) for r in sorted(results, key=lambda r: r.index)]})
+    return out
+
+
+def render_round_robin(summary: Mapping[str, Any]):
+    """Two rich Tables of :func:`round_robin`'s summary: the pairwise results (each row player's
+    W-D-L and win rate against each column player) and the ratings."""
+    from rich import box
+    from rich.table import Table
+
+    players = summary["players"]
+    cell: dict[tuple[str, str], str] = {}
+    for p in summary["pairs"]:
+        w, d, l_, n = p["a_wins"], p["draws"], p["b_wins"], p["matches"]
+        cell[(p["a"], p["b"])] = f"{w}-{d}-{l_} {w / n:.0%}"
+        cell[(p["b"], p["a"])] = f"{l_}-{d}-{w} {l_ / n:.0%}"
+    t = Table(title=f"{summary.get('env', '')} round robin: row's wins-draws-losses and win rate vs column "
+                    f"({summary.get('matches_per_pair')} matches per pair)", box=box.SIMPLE_HEAD)
+    t.add_column("player", no_wrap=True)
+    for c in players:
+        t.add_column(c, justify="right", no_wrap=True)
+    for r in players:
+        t.add_row(r, *[("" if r == c else cell.get((r, c), "-")) for c in players])
+    rt = Table(title="Elo (Bradley-Terry, " + (f"{summary['anchor']} = 0" if summary.get("anchor") else "mean 0")
+               + ")", box=box.SIMPLE_HEAD)
+    for c in ("player", "Elo [95% CI]", "matches", "score"):
+        rt.add_column(c, justify="left" if c == "player" else "right", no_wrap=True)
+    for r in summary["ratings"]:
+        if math.isnan(r["elo"]):
+            rt.add_row(r["player"], "-", "0", "-")
+            continue
+        lo, hi = r["elo_ci95"]
+        rt.add_row(r["player"], f"{r['elo']:+.0f} [{lo:+.0f}, {hi:+.0f}]", str(r["matches"]), f"{r['score']:.0%}")
+    return t, rt

@@ -8,21 +8,17 @@ import json
 import logging
 import os
 import sys
-import warnings
-import zipfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import gymnasium as gym
-import numpy as np
-import torch
 
 from zenrl.common.config import EnvConfig, RunConfig, config_from_dict
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
 from zenrl.common.networks import num_actions
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
-from zenrl.common.policy_io import GreedyPolicy, build_network, load_policy
+from zenrl.common.policy_io import ExportedPlayer, GreedyPolicy, build_network, is_exported, load_policy  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -65,71 +61,6 @@ def _match_kwargs(kwargs: Mapping[str, Any], opponents: Sequence[str]) -> dict[s
     kw = {k: v for k, v in kwargs.items() if k not in ("opponent_policy",)}
     kw["opponents"] = list(opponents)
     return kw
-
-
-def is_exported(path: str | os.PathLike[str]) -> bool:
-    """True for a file written by ``zenrl export`` (a TorchScript archive carrying
-    ``extra/zenrl.json``), False for anything else (a checkpoint, a missing file)."""
-    try:
-        with zipfile.ZipFile(path) as z:
-            return any(n.endswith("/extra/zenrl.json") for n in z.namelist())
-    except (OSError, zipfile.BadZipFile):
-        return False
-
-
-class ExportedPlayer:
-    """``player(obs) -> int`` for one observation, from a ``zenrl export`` file: the greedy policy
-    as TorchScript plus its ``zenrl.json`` description (env id and kwargs, input shapes and dtypes,
-    number of actions). ``meta`` is that description.
-
-    A TorchScript file is a program (its graph runs when called): load only files you trust, such
-    as the ones in ``models/``. Checkpoints (``torch.load(weights_only=True)``) carry weights only.
-    """
-
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        extra = {"zenrl.json": ""}
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", DeprecationWarning)
-                self.module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
-            self.meta = json.loads(extra["zenrl.json"])
-        except Exception as e:  # torch raises many types for a damaged archive
-            raise ZenrlError(f"exported policy {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
-        if not isinstance(self.meta, dict) or not isinstance(self.meta.get("inputs"), dict) or "env" not in self.meta:
-            raise ZenrlError(f"exported policy {str(path)!r}: zenrl.json lacks 'env' or 'inputs'")
-        self.module.eval()
-        self.name = Path(path).name
-        self.n_actions = int(self.meta.get("n_actions", 0))
-        self.keys = list(self.meta["inputs"])
-        self.dict_obs = self.keys != ["obs"]
-
-    def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
-        """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
-        spaces = observation_space.spaces if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
-        if sorted(spaces) != sorted(self.keys):
-            raise ZenrlError(f"{self.name}: exported for observation keys {sorted(self.keys)}, the env has {sorted(spaces)}")
-        for k, want in self.meta["inputs"].items():
-            sp = spaces[k]
-            if list(sp.shape) != list(want.get("shape", [])) or str(sp.dtype) != want.get("dtype"):
-                raise ZenrlError(f"{self.name}: input {k!r} exported as {want.get('dtype')}{want.get('shape')}, "
-                                 f"the env gives {sp.dtype}{list(sp.shape)}")
-        n = getattr(action_space, "n", None)
-        if n is None or int(n) != self.n_actions:
-            raise ZenrlError(f"{self.name}: exported for {self.n_actions} actions, the env has {action_space}")
-
-    def reseed(self, seed: int | None) -> None:
-        """Nothing to reseed: the exported policy is greedy."""
-
-    def reset(self) -> None:
-        """Nothing to reset: an exported policy has no state between observations."""
-
-    def __call__(self, obs: Any) -> int:
-        with torch.no_grad():
-            if self.dict_obs:
-                x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}
-            else:
-                x = torch.as_tensor(np.ascontiguousarray(obs))
-            return int(self.module(x))
 
 
 def exported_config(meta: Mapping[str, Any]) -> RunConfig:

@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
 # Makes files/ for the secured overlay: the inputs of its secretGenerator and configMapGenerator.
 #
-#   deploy/k8s/overlays/secured/prepare.sh [NAMESPACE]
+#   deploy/k8s/overlays/secured/prepare.sh [NAMESPACE] [ACTORS]
 #
 # * certificates (deploy/zenoh/gen-certs.sh): a development CA and a router certificate naming
 #   the router Service (zenrl-router, zenrl-router.NAMESPACE.svc[.cluster.local]); skipped when
 #   files/ca.pem exists, so you can put your own CA, router.pem and router-key.pem there instead;
-# * router-secure.json5 (the access control), users.txt and client-<role>.json5 copied from
-#   deploy/zenoh. These hold DEVELOPMENT passwords: change each one in files/users.txt and the
-#   matching files/client-<role>.json5 (and hostrouter in users.txt) before the cluster is
-#   reachable from anywhere untrusted.
+# * fresh credentials (`zenrl credentials`, so zenrl must be installed: pip install -e .): random
+#   passwords in users.txt, client-<role>.json5, actor-logins.json (actor-0 .. actor-<ACTORS-1>,
+#   default 16: at most that many actor pods), and router-secure.json5 with the access control
+#   for those actors; kept when files/users.txt exists (delete it, or files/, for a new set).
 #
 # files/ is git-ignored; kustomize turns it into Secrets when the overlay is applied, so no
 # secret is ever part of a manifest in the repository.
@@ -27,9 +27,8 @@ fi
 for f in router.pem router-key.pem; do
   [[ -f "$out/$f" ]] || { echo "prepare.sh: $out/$f is missing (a CA is there but no router certificate)" >&2; exit 1; }
 done
-cp "$zenoh/router-secure.json5" "$zenoh/users.txt" "$out/"
-for role in actor learner replay evaluator monitor; do
-  cp "$zenoh/client-$role.json5" "$out/"
-done
-chmod 600 "$out"/*-key.pem "$out/users.txt" "$out"/client-*.json5
-echo "wrote $out (namespace $ns); change the development passwords before real use"
+python="${PYTHON:-python3}"  # the Python that has zenrl
+"$python" -m zenrl.cli credentials --out "$out" --templates "$zenoh" --actors "${2:-16}" >/dev/null \
+  || { echo "prepare.sh: zenrl credentials failed (is zenrl installed? pip install -e .)" >&2; exit 1; }
+chmod 600 "$out"/*-key.pem
+echo "wrote $out (namespace $ns, actor logins: $("$python" -c "import json,sys; print(len(json.load(open(sys.argv[1]))))" "$out/actor-logins.json"))"
