@@ -147,3 +147,38 @@ def test_frame_chunks_that_break_the_layout_are_rejected_and_a_lost_frame_drops_
     keep = sum(int(not np.isin(bl.data["obs"][i], list(first_ids)).any()) for bl in framed[1:] for i in range(len(bl)))
     assert stored == keep and keep < sum(len(bl) for bl in framed[1:])
     assert svc.stats_values()["frames_unresolved_items"] == sum(len(bl) for bl in framed[1:]) - keep
+
+
+def test_the_actor_on_a_camera_env_sends_frame_chunks_the_replay_stores(tmp_path):
+    """The R2D2 actor on Burger War's camera (a uint8 image): its chunks carry frames and frame
+    ids (with ``actor.compress=lz4``), and a replay built from the same config stores every sequence."""
+    import json
+
+    from tests.unit.actor_fakes import FakeNode
+    from zenrl.actor.r2d2 import R2D2Actor
+    from zenrl.replay.service import make_checker
+
+    match = {"match_time": 3.0, "sudden_death_time": 1.0, "control_hz": 5, "opponents": ["cheese"], "side": "random",
+             "reward": "zero_sum", "render_size": 96, "image_size": 16}
+    cfg = load_config(None, [f"runs_dir={tmp_path}", "algo=r2d2", "env.id=zenrl/BurgerWarImage-v0",
+                             f"env.kwargs={json.dumps(match)}", "network.hidden=[16]", "actor.envs_per_actor=2",
+                             "actor.chunk_size=8", "actor.compress=lz4", "r2d2.sequence_length=4", "r2d2.burn_in=2",
+                             "r2d2.n_step=2", "r2d2.lstm_size=8", "r2d2.block_steps=2", "replay.min_size=1",
+                             "replay.frames_per_item=8"], environ={})
+    node = FakeNode(None)
+    actor = R2D2Actor(cfg, node, "t", "a0", slot=0, num_slots=1)
+    actor.start(node)
+    for _ in range(24):
+        actor.step(0.05)
+    actor.close()
+    payloads = node.sent(P.Keys("t").transitions("a0"))
+    msgs = [P.TransitionBatch.decode(p) for p in payloads]
+    assert msgs and all(m.frames is not None for m in msgs)
+    n_frames = sum(len(next(iter(m.frames.values()))) for m in msgs)
+    n_seq = sum(m.batch_size for m in msgs)
+    assert n_frames < n_seq * (4 + 1), "overlapping sequences share their frames"
+    svc = ReplayService(cfg, None, "t")
+    svc.checker = make_checker(cfg)
+    svc.ingestor.limits = P.DecodeLimits(svc.rcfg.max_decoded_bytes, svc.checker.packed_shapes())
+    assert sum(svc.ingest(p, "zenrl/t/transitions/a0") for p in payloads) == n_seq
+    assert svc.stats_values()["frames_stored"] == n_frames
