@@ -1,12 +1,13 @@
-"""Frame ids for frame mode (docs/protocol.md, "Frame mode"), for R2D2's sequences.
+"""Frame ids for frame mode (docs/protocol.md, "Frame mode"): Ape-X's n-step transitions
+(:mod:`zenrl.actor.nstep`) and R2D2's sequences (:mod:`zenrl.actor.sequences`) number frames
+the same way.
 
 An actor numbers the observation frames it records ``0, 1, 2, ...`` and sends each one once; an
 observation is named by the id of its frame (``int64[1]``) or, for a stack of k frames (oldest
-first, gymnasium's ``FrameStackObservation``), by k ids. The reuse rule is the Ape-X n-step
-builder's (``NStepBlocks._frame_ids`` in :mod:`zenrl.actor.nstep`): slot i of a stack reuses
-the id of the previous observation's slot i+1, or of its own slot i+1, where every field's
-content is equal; only slots that match nothing are new frames. Equal content is what makes a
-reuse correct, so no knowledge of episode boundaries is needed.
+first, gymnasium's ``FrameStackObservation``), by k ids: slot i of a stack reuses the id of the
+previous observation's slot i+1, or of its own slot i+1, where every field's content is equal;
+only slots that match nothing are new frames. Equal content is what makes a reuse correct, so
+no knowledge of episode boundaries is needed.
 """
 
 from __future__ import annotations
