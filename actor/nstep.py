@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from zenrl.actor.frame_ids import FrameNumbering
+
 
 def _max_last(a: np.ndarray) -> np.ndarray:
     """``a.max(-1)``; for a few actions as a loop of elementwise maxima: numpy's reduction over
@@ -94,10 +96,7 @@ class NStepBlocks:
         kk = max(frame_stack or 0, 1)
         self._fid = np.zeros((R, E, kk), np.int64)     # frame ids of s_t
         self._ffid = np.zeros((R, E, kk), np.int64)    # frame ids of the final observation
-        self._prev: list[tuple[dict[str, np.ndarray], np.ndarray] | None] = [None] * E
-        self._next_id = 0
-        self._sent_id = 0
-        self._pending: list[dict[str, np.ndarray]] = []
+        self._frames = None if frame_stack is None else FrameNumbering(E, frame_stack)
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: dict[str, np.ndarray], terminated: np.ndarray, truncated: np.ndarray,
@@ -138,46 +137,15 @@ class NStepBlocks:
         return block
 
     def _frame_ids(self, e: int, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Frame ids of env ``e``'s observation ``obs[.][e]``, the next one of its sequence.
-        Unstacked: one new frame. Stacked (``[k, ...]`` per field, oldest first): slot i reuses
-        the id of the previous observation's slot i+1, or of its own slot i+1, where every
-        field's content is equal (a continuing episode, or reset padding); only slots that
-        match nothing are new frames. Equal content is what makes a reuse correct, so this
-        needs no knowledge of episode boundaries."""
-        k = self.frame_stack
-        cur = {f: v[e] for f, v in obs.items()}
-        if not k:
-            self._pending.append({f: v.copy() for f, v in cur.items()})
-            self._next_id += 1
-            return np.array([self._next_id - 1])
-        prev = self._prev[e]
-        ids = np.empty(k, np.int64)
-        for i in range(k - 1, -1, -1):
-            if i < k - 1:
-                if prev is not None and all(np.array_equal(v[i], prev[0][f][i + 1]) for f, v in cur.items()):
-                    ids[i] = prev[1][i + 1]
-                    continue
-                if all(np.array_equal(v[i], v[i + 1]) for v in cur.values()):
-                    ids[i] = ids[i + 1]
-                    continue
-            self._pending.append({f: v[i].copy() for f, v in cur.items()})
-            ids[i] = self._next_id
-            self._next_id += 1
-        self._prev[e] = ({f: v.copy() for f, v in cur.items()}, ids)
-        return ids
+        """Frame ids of env ``e``'s observation ``obs[.][e]``, the next one of its sequence
+        (:meth:`FrameNumbering.ids <zenrl.actor.frame_ids.FrameNumbering.ids>`: a stack's slots
+        reuse the ids of equal frames, only the others are new)."""
+        return self._frames.ids(e, obs)
 
     def _take_frames(self) -> tuple[dict[str, np.ndarray] | None, int]:
-        if self.frame_stack is None:
+        if self._frames is None:
             return None, 0
-        base = self._sent_id
-        if self._pending:
-            frames = {f: np.stack([p[f] for p in self._pending]) for f in self._pending[0]}
-        else:
-            frames = {k: np.zeros((0, *v.shape[2 + (1 if self.frame_stack else 0):]), v.dtype)
-                      for k, v in self._obs.items()}
-        self._pending = []
-        self._sent_id = self._next_id
-        return frames, base
+        return self._frames.take()
 
     def flush(self, value_fn: ValueFn) -> Block | None:
         """Emit every start whose n steps and the observation after them are recorded (at

@@ -15,8 +15,9 @@
 
 Priorities reuse the Q values computed for acting, as the Ape-X actor's do; only sequences
 closed by a truncated episode need one extra step of the network on the final observation.
-Frame mode (each image frame sent once) is not supported for sequences yet: image sequences
-travel as full arrays.
+Image envs (a uint8 observation of 2+ dims) with ``actor.frames`` (the default) send frame ids:
+each frame once, whatever the overlap of sequences and stacks (``actor.frame_stack``), as
+Ape-X's actor does; ``actor.compress: lz4`` compresses the frames (docs/protocol.md).
 """
 
 from __future__ import annotations
@@ -78,9 +79,13 @@ class SequencesToReplay:
         if block is None or len(block) == 0:
             return
         k = self.per_chunk
+        frames, base = block.frames, block.frame_base
         for i in range(0, len(block), k):
             self.replay.insert({name: v[i:i + k] for name, v in block.data.items()}, block.priorities[i:i + k],
-                               self.version())
+                               self.version(), frames, None if frames is None else base)
+            if frames is not None:  # the block's frames go with its first chunk
+                base += len(next(iter(frames.values())))
+                frames = {name: v[:0] for name, v in frames.items()}
         self.sent_sequences += len(block)
         self.sent_steps += int(block.length.sum())
 
@@ -125,9 +130,11 @@ class R2D2Actor(ActorWorker):
         self.replay = ZenohReplayClient(node, keys, actor_id, cfg.transport.query_timeout_s,
                                         cfg.transport.max_message_bytes, acfg.backlog_chunks,
                                         None if acfg.compress == "none" else acfg.compress)
+        image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in spec.values())
         builder = SequenceBuilder(acfg.envs_per_actor, rcfg.sequence_length, rcfg.n_step, cfg.learner.gamma,
                                   burn_in=rcfg.burn_in, eta=rcfg.eta, eps=rcfg.value_rescale_eps,
-                                  block_steps=rcfg.block_steps)
+                                  block_steps=rcfg.block_steps,
+                                  frame_stack=acfg.frame_stack if acfg.frames and image else None)
         self.sequences = SequencesToReplay(self.replay, builder, sequences_per_chunk(acfg.chunk_size, rcfg.sequence_length),
                                            policy.q_after, lambda: weights.version)
         super().__init__(keys, actor_id, slot, envs, policy, EpisodeStartsToPolicy(self.sequences, policy), weights,

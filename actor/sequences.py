@@ -23,6 +23,13 @@ forward pass made when acting on s, as the Ape-X actor does (:mod:`zenrl.actor.n
 sequence closed by a truncation bootstraps from its final observation, which nobody acted on:
 for those the caller's ``final_q_fn`` runs one extra step.
 
+Frame mode (``frame_stack`` not None, image envs; docs/protocol.md): the observations leave as
+frame ids, ``obs/<key>`` int64[S, m+1] (each observation one frame) or int64[S, m+1, k] (stacks
+of k), one id naming the frame of every observation table; each frame is numbered once
+(:class:`~zenrl.actor.frame_ids.FrameNumbering`) and travels once, in the block that follows its
+recording (:attr:`SequenceBlock.frames`), so overlapping sequences and neighbouring stacks share
+it. The padding after s_len repeats s_len's ids (a frame the replay holds), not zeros.
+
 Steps live in a ring of m + block_steps rows shared by the envs (a row per batched step);
 closed sequences are gathered from it every ``block_steps`` steps with one fancy index per field.
 :meth:`SequenceBuilder.flush` gathers the closed ones at shutdown; open ones are dropped.
@@ -35,7 +42,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from zenrl.actor.frame_ids import FrameNumbering
 from zenrl.common.recurrent import inverse_value_rescale, mixed_priority, value_rescale
+
+#: frame mode: the ring field of the observations' frame ids
+FRAME_IDS = "frame_ids"
 
 #: indices of the envs whose episode was truncated (and not terminated: with both flags set the
 #: episode terminated, nothing to bootstrap) -> float[len(idx), A] the Q values of their
@@ -47,7 +58,9 @@ FinalQFn = Callable[[np.ndarray], np.ndarray]
 class SequenceBlock:
     """Sequences closed at one step. ``data``: the fields above; ``q`` float32[S, m+1, A] the
     acting Q values (row ``len``: the bootstrap's, zeros where terminated); ``priorities``
-    float32[S]; ``env``, ``start`` (episode step of s_0), ``length`` int64[S]."""
+    float32[S]; ``env``, ``start`` (episode step of s_0), ``length`` int64[S]. Frame mode:
+    ``frames`` ``{table: [F, ...]}`` the frames numbered since the previous block, ids
+    ``frame_base .. frame_base + F - 1``."""
 
     data: dict[str, np.ndarray]
     q: np.ndarray
@@ -55,6 +68,8 @@ class SequenceBlock:
     env: np.ndarray
     start: np.ndarray
     length: np.ndarray
+    frames: dict[str, np.ndarray] | None = None
+    frame_base: int = 0
 
     def __len__(self) -> int:
         return int(self.env.shape[0])
@@ -66,7 +81,7 @@ class SequenceBuilder:
     the gathering and the priorities' ~40 numpy calls then cost once per block, not per step."""
 
     def __init__(self, num_envs: int, length: int, n_step: int, gamma: float, burn_in: int = 0,
-                 eta: float = 0.9, eps: float = 1e-3, block_steps: int = 1) -> None:
+                 eta: float = 0.9, eps: float = 1e-3, block_steps: int = 1, frame_stack: int | None = None) -> None:
         if length < 2 or length % 2:
             raise ValueError(f"sequence length must be even and >= 2, got {length}")
         if not 0 <= burn_in <= length // 2 or n_step < 1 or block_steps < 1:
@@ -82,6 +97,9 @@ class SequenceBuilder:
         # closed sequences not yet gathered, per step: env, start, length, ended, and t0 (the
         # batched step of s_0, its ring row)
         self._pending: list[tuple[np.ndarray, ...]] = []
+        #: frame mode: the numbering of the observations' frames (None: full observations)
+        self.frames = None if frame_stack is None else FrameNumbering(num_envs, frame_stack)
+        self._obs_keys: list[str] = []
 
     def add(self, obs: dict[str, np.ndarray], q: np.ndarray, state: tuple[np.ndarray, np.ndarray],
             actions: np.ndarray, rewards: np.ndarray, next_obs: dict[str, np.ndarray],
@@ -91,6 +109,9 @@ class SequenceBuilder:
         episode's first step); ``actions`` int[E]; ``rewards`` float[E]; ``next_obs`` s_{t+1}
         (only the final observations of envs whose episode ended are read);
         ``terminated``/``truncated`` bool[E]."""
+        if self.frames is not None:  # one id (or k) per env names the frame of every table
+            self._obs_keys = list(obs)
+            obs = {FRAME_IDS: np.stack([self.frames.ids(e, obs) for e in range(self.E)])}
         fields = {**{"o:" + k: v for k, v in obs.items()}, "q": np.asarray(q, np.float32),
                   "h": state[0], "c": state[1], "action": actions, "reward": rewards,
                   "terminated": terminated, "truncated": truncated}
@@ -104,8 +125,11 @@ class SequenceBuilder:
         done = terminated | truncated
         if done.any():
             idx = done.nonzero()[0]
-            for k, v in next_obs.items():
-                self._final["o:" + k][row, idx] = v[idx]
+            if self.frames is not None:
+                self._final["o:" + FRAME_IDS][row, idx] = [self.frames.ids(e, next_obs) for e in idx.tolist()]
+            else:
+                for k, v in next_obs.items():
+                    self._final["o:" + k][row, idx] = v[idx]
             self._final["q"][row, idx] = 0.0                 # terminated: nothing to bootstrap
             tr = (truncated & ~terminated).nonzero()[0]   # both set: the episode terminated
             if tr.size:
@@ -129,7 +153,10 @@ class SequenceBuilder:
             return None
         env, start, length, ended, t0 = (np.concatenate(a) for a in zip(*self._pending))
         self._pending = []
-        return self._gather(env, start, length, ended, t0)
+        block = self._gather(env, start, length, ended, t0)
+        if self.frames is not None:
+            block.frames, block.frame_base = self.frames.take()
+        return block
 
     def _gather(self, env: np.ndarray, start: np.ndarray, length: np.ndarray, ended: np.ndarray,
                 t0: np.ndarray) -> SequenceBlock:
@@ -147,6 +174,11 @@ class SequenceBuilder:
             elif k.startswith("o:") or k == "q":
                 g = v[rows, env[:, None]]
                 g[ended, l_end] = self._final[k][end_row, e_end]      # s_len of an ended episode
+                if k == "o:" + FRAME_IDS:   # padding names s_len's frames: ones the replay holds
+                    g = np.where(obs_mask[:, :, None], g, g[np.arange(len(length)), length][:, None])
+                    ids = g if self.frames is not None and self.frames.k else g[..., 0]
+                    data.update({key: ids for key in self._obs_keys})
+                    continue
                 g[~obs_mask] = 0
                 data[k[2:] if k != "q" else k] = g
             else:

@@ -30,6 +30,16 @@ Progress goes to stderr; the last stdout line is one JSON object.
     python bench/learner_throughput.py --quick    # one short round (~40 s)
     python bench/learner_throughput.py --guard-only   # the learner guard's cost per update (~35 s)
     python bench/learner_throughput.py --poison       # 1% in-bounds poison vs none; the checks' cost
+    python bench/learner_throughput.py --r2d2         # the R2D2 learner on sequences (~2 min)
+
+``--r2d2`` (issue #34): the same comparison for :class:`R2D2Learner` with
+``configs/stateless_cartpole_r2d2.yaml`` (its batch of 32 sequences of 20 steps, burn-in 10):
+the replay process is pre-filled with sequences cut by the actor's ``SequenceBuilder`` from
+StatelessCartPole episodes (random actions); ``baseline`` is ``R2D2Core`` on sampled batches
+already in memory, ``inmem_replay`` the same core sampling an ``InMemoryReplay`` holding the same
+sequences and writing the priorities back in the same thread (what a single-process learner would
+do). ``learner_efficiency`` = service / baseline (Ape-X's definition, target >= 0.85 here);
+``learner_efficiency_vs_replay`` = service / inmem_replay.
 """
 
 from __future__ import annotations
@@ -316,6 +326,11 @@ def poison_bench(cfg: Any, spec: Any, n_actions: int, rounds: int, round_s: floa
 
 
 def make_service(cfg: Any, node: Any, run: str, name: str) -> Any:
+    """The learner of ``cfg.algo`` (Ape-X or R2D2), fed by the replay service."""
+    if cfg.algo == "r2d2":
+        from zenrl.learner.r2d2 import R2D2Learner
+
+        return R2D2Learner(cfg, node, run, resume="never", learner_id=name)
     from zenrl.learner.apex import ApexLearner
 
     return ApexLearner(cfg, node, run, resume="never", learner_id=name)
@@ -407,6 +422,186 @@ def profile_service(cfg: Any, node: Any, run: str, duration_s: float) -> dict[st
             "top_tottime": [{"func": f"{Path(k[0]).name}:{k[1]}({k[2]})", "tottime_s": round(v[2], 3),
                              "cumtime_s": round(v[3], 3), "calls": v[1]} for k, v in top],
             "note": "run_s includes start-up (first weights broadcast) and the final checkpoint"}
+
+
+# -- R2D2 (issue #34) ----------------------------------------------------------------------------
+R2D2_CONFIG = ROOT / "configs" / "stateless_cartpole_r2d2.yaml"
+R2D2_TARGET = 0.85
+R2D2_PREFILL = 4000  # sequences (the config's replay.capacity)
+
+
+def make_sequences(cfg: Any, n: int, seed: int = 0) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``n`` sequences as an R2D2 actor sends them (fields of :mod:`zenrl.actor.sequences`), cut
+    by :class:`SequenceBuilder` from ``cfg.env`` episodes under random actions; the acting Q values
+    and LSTM state are random (|h| < 1, zero at an episode's first step): the learner's cost does
+    not depend on them. Returns (fields [n, ...], initial priorities float32[n])."""
+    from zenrl.actor.batch_env import EnvBatch
+    from zenrl.actor.sequences import SequenceBuilder
+
+    r = cfg.r2d2
+    E, H = cfg.actor.envs_per_actor, r.lstm_size
+    envs = EnvBatch(cfg.env, E, seed=seed)
+    n_act = int(envs.single_action_space.n)
+    b = SequenceBuilder(E, r.sequence_length, r.n_step, cfg.learner.gamma, burn_in=r.burn_in, eta=r.eta,
+                        eps=r.value_rescale_eps, block_steps=r.block_steps)
+    rng = np.random.default_rng(seed)
+    obs, parts, prios, got = envs.reset(), [], [], 0
+    while got < n:
+        start = (b.ep == 0)[:, None]
+        h = np.where(start, 0.0, np.tanh(rng.normal(size=(E, H)))).astype(np.float32)
+        c = np.where(start, 0.0, rng.normal(size=(E, H))).astype(np.float32)
+        q = rng.normal(size=(E, n_act)).astype(np.float32)
+        act = rng.integers(0, n_act, E)
+        res = envs.step(act)
+        block = b.add(obs, q, (h, c), act, res.rewards, res.next_obs, res.terminated, res.truncated,
+                      lambda idx: rng.normal(size=(len(idx), n_act)).astype(np.float32))
+        obs = res.obs
+        if block is not None and len(block):
+            parts.append(block.data)
+            prios.append(block.priorities)
+            got += len(block)
+    envs.close()
+    data = {k: np.concatenate([d[k] for d in parts])[:n] for k in parts[0]}
+    return data, np.concatenate(prios)[:n].astype(np.float32)
+
+
+def prefill_sequences(node: Any, keys: Any, rstats: StatsWatch, data: dict[str, np.ndarray], prios: np.ndarray,
+                      per_chunk: int) -> None:
+    from zenrl.common.replay_client import ZenohReplayClient
+
+    client = ZenohReplayClient(node, keys, "bench-prefill")
+    n = len(prios)
+    for i in range(0, n, per_chunk):
+        client.insert({k: v[i:i + per_chunk] for k, v in data.items()}, prios[i:i + per_chunk], policy_version=0)
+    client.flush_backlog()
+    wait_until(lambda: rstats.latest.get("inserted_total", 0) >= n, 120, f"replay to hold {n} sequences")
+
+
+def r2d2_memory_rate(cfg: Any, spec: Any, n_actions: int, data: dict[str, np.ndarray], prios: np.ndarray,
+                     sample: bool, warmup_s: float, duration_s: float) -> dict[str, Any]:
+    """Updates/s of an :class:`R2D2Core` in this thread. ``sample`` False: on 8 batches sampled
+    once from an in-memory replay (``batch_to_tensors`` + ``update``, nothing else); True: each
+    step samples the in-memory replay, updates and writes the priorities back."""
+    import torch
+
+    from zenrl.common.networks import resolve_device
+    from zenrl.common.specs import spec_of_batch
+    from zenrl.learner.r2d2 import R2D2Core
+    from zenrl.replay.buffer import InMemoryReplay
+
+    torch.set_num_threads(cfg.learner.torch_threads)
+    torch.manual_seed(cfg.seed)
+    core = R2D2Core(spec, n_actions, cfg.network, cfg.learner, cfg.r2d2, resolve_device(cfg.learner.device),
+                    cfg.replay.max_priority)
+    rb = InMemoryReplay(spec_of_batch(data), capacity=len(prios), alpha=cfg.replay.alpha, seed=1)
+    rb.insert(data, prios)
+    rng = np.random.default_rng(1)
+    B = cfg.learner.batch_size
+    fixed = [rb.sample(B, core.beta(), rng) for _ in range(8)]
+
+    def step(i: int) -> None:
+        s = rb.sample(B, core.beta(), rng) if sample else fixed[i % 8]
+        _, p = core.update(core.batch_to_tensors(s.data, s.weights))
+        if sample and p is not None:
+            rb.update_priorities(s.keys, p)
+
+    i = 0
+    t_end = time.perf_counter() + warmup_s
+    while time.perf_counter() < t_end:
+        step(i)
+        i += 1
+    n = 0
+    t0, c0 = time.perf_counter(), time.thread_time()
+    while time.perf_counter() < t0 + duration_s:
+        step(i)
+        i += 1
+        n += 1
+    el, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return {"updates_per_s": n / el, "updates_per_cpu_s": n / cpu, "updates": n, "elapsed_s": el, "cpu_s": cpu}
+
+
+def r2d2_bench(args: argparse.Namespace) -> int:
+    """``--r2d2``: service (replay process + Zenoh) vs in memory, rounds alternating."""
+    import torch
+
+    from zenrl.actor.r2d2 import sequences_per_chunk
+    from zenrl.common import protocol as P
+    from zenrl.common.config import load_config
+    from zenrl.common.transport import Node, open_router
+    from zenrl.launcher import free_port
+    from zenrl.learner.base import env_shapes
+
+    t_start = time.perf_counter()
+    rounds, warmup_s, dur_s = (1, 2.0, 5.0) if args.quick else (3, 3.0, 8.0)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    run = f"bench{uuid.uuid4().hex[:8]}"
+    keys = P.Keys(run)
+    tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-learner-r2d2-"))
+    cfg = load_config(R2D2_CONFIG, [f"transport.router={ep}", f"run_id={run}", f"runs_dir={tmp / 'runs'}",
+                                    "learner.log_interval_s=1.0", "learner.device=cpu", *args.set])
+    out: dict[str, Any] = {"bench": "learner_throughput", "mode": "r2d2", "quick": bool(args.quick), "error": None}
+    router = open_router([ep])
+    procs = Procs(tmp)
+    node = None
+    try:
+        node = Node(ep, 10.0)
+        rstats = StatsWatch(node, keys.stats("replay", "replay"))
+        lstats = StatsWatch(node, f"{keys.prefix}/stats/learner/*")
+        log(f"router {ep}, run {run}, logs in {tmp}")
+        procs.start("replay", ["-m", "zenrl.cli", "replay", "--config", str(R2D2_CONFIG), "--router", ep,
+                               "--run-id", run, "--set", "replay.stats_interval_s=0.25",
+                               "--set", f"replay.capacity={R2D2_PREFILL}", *sum((["--set", x] for x in args.set), [])])
+        data, prios = make_sequences(cfg, R2D2_PREFILL)
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
+        prefill_sequences(node, keys, rstats, data, prios, sequences_per_chunk(cfg.actor.chunk_size, cfg.r2d2.sequence_length))
+        log(f"replay pre-filled: {rstats.latest.get('size')} sequences")
+        spec, n_actions = env_shapes(cfg)
+        base, mem, svc = [], [], []
+        for r in range(rounds):
+            b = r2d2_memory_rate(cfg, spec, n_actions, data, prios, False, warmup_s, dur_s)
+            log(f"round {r} baseline (R2D2Core, in-memory batches): {b['updates_per_s']:.1f} updates/s")
+            base.append(b)
+            s = service_rate(cfg, node, run, f"bench-learner-{r}", warmup_s, dur_s, lstats)
+            log(f"round {r} R2D2Learner: {s['updates_per_s']:.1f} updates/s, wait fraction {s['wait_fraction']}")
+            svc.append(s)
+            m = r2d2_memory_rate(cfg, spec, n_actions, data, prios, True, warmup_s, dur_s)
+            log(f"round {r} R2D2Core + InMemoryReplay: {m['updates_per_s']:.1f} updates/s")
+            mem.append(m)
+
+        def med(xs: list[dict[str, Any]], k: str = "updates_per_s") -> float:
+            return statistics.median(x[k] for x in xs)
+
+        eff, eff_cpu = med(svc) / med(base), med(svc, "updates_per_cpu_s") / med(base, "updates_per_cpu_s")
+        out.update({
+            "learner_efficiency": round(eff, 3),
+            "learner_efficiency_cpu": round(eff_cpu, 3),
+            "learner_efficiency_vs_replay": round(med(svc) / med(mem), 3),
+            "target_efficiency": R2D2_TARGET,
+            "service_updates_per_s": round(med(svc), 1),
+            "baseline_updates_per_s": round(med(base), 1),
+            "inmem_replay_updates_per_s": round(med(mem), 1),
+            "batch_size": cfg.learner.batch_size,
+            "sequence_length": cfg.r2d2.sequence_length,
+            "burn_in": cfg.r2d2.burn_in,
+            "lstm_size": cfg.r2d2.lstm_size,
+            "requests_in_flight": cfg.learner.requests_in_flight,
+            "publish_every_updates": cfg.learner.publish_every_updates,
+            "torch_threads": cfg.learner.torch_threads,
+            "replay_size": rstats.latest.get("size"),
+            "rounds": {"baseline": base, "service": svc, "inmem_replay": mem},
+        })
+        if min(eff, eff_cpu) < R2D2_TARGET or args.profile:
+            log("profiling one more learner run (cProfile)")
+            out["profile"] = profile_service(cfg, node, run, 4.0 if args.quick else 8.0)
+        out.update({"notes": ("rates between two instants after a warm-up, medians of alternating rounds; the "
+                              "replay (a separate process) and the router (in this process) work during service "
+                              "rounds only; 2-core machine shared with other work"),
+                    "torch": torch.__version__, **machine_info(t_start)})
+    except BaseException as e:
+        record_error(out, e)
+    finally:
+        shut_down(procs, node, router)
+    return emit(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -523,8 +718,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="issue #32 item 2: the learner loop with 1%% in-bounds poison vs none, the checks' cost (~2 min)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override (repeatable), e.g. --set learner.requests_in_flight=8")
+    ap.add_argument("--r2d2", action="store_true",
+                    help="issue #34: the R2D2 learner on sequences over Zenoh vs in memory (~2 min)")
     args = ap.parse_args(argv)
     stop_on_sigterm()
+    if args.r2d2:
+        return r2d2_bench(args)
     return orchestrate(args)
 
 

@@ -31,6 +31,9 @@ Reported (the last stdout line is one JSON object; progress goes to stderr):
     python bench/time_to_solve.py --algo a3c             # 3 seeds each (minutes)
     python bench/time_to_solve.py --algo apex --quick    # 1 seed each, capped time
     python bench/time_to_solve.py --algo impala          # IMPALA vs A3C vs SB3 A2C, + consumption
+    python bench/time_to_solve.py --algo r2d2            # R2D2 vs Ape-X on StatelessCartPole, 600 s cap
+
+``--algo r2d2`` (issue #34): see :func:`r2d2_main`.
 """
 
 from __future__ import annotations
@@ -82,9 +85,11 @@ def finite(x: float) -> float | None:
 
 # --------------------------------------------------------------------------------------------
 def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str] | None = None,
-              report_s: float = 0.05) -> dict[str, Any]:
+              report_s: float = 0.05, config: Path | None = None) -> dict[str, Any]:
+    """``config``: instead of ``configs/cartpole_<algo>.yaml``."""
     run_id = f"tts-{algo}-s{seed}-{os.getpid()}"
-    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(ROOT / "configs" / f"cartpole_{algo}.yaml"),
+    config = config or ROOT / "configs" / f"cartpole_{algo}.yaml"
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(config),
            "--seed", str(seed), "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
            "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={TARGET}",
            "--set", f"max_wall_s={cap_s}", "--set", f"actor.episode_report_s={report_s}"]
@@ -102,6 +107,7 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
     at = next((e for e in evals if s["solved"] and e.get("since_first_step") == s["solve_s_since_first_step"]), {})
     out = {"seed": seed, "solved": bool(s["solved"]), "solve_s": s["solve_s_since_first_step"],
            "updates_at_solve": at.get("updates"), "env_steps_at_solve": at.get("env_steps"),
+           "last_eval": evals[-1].get("mean") if evals else None,
            "startup_s": s["startup_s"], "env_steps": s["env_steps"], "env_steps_per_s": sps,
            "stop_reason": s["stop_reason"], "updates": (s.get("learner") or {}).get("updates"),  # at the end
            "env_steps_trained": (s.get("learner") or {}).get("env_steps_trained"),
@@ -216,10 +222,56 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
     return out
 
 
+# -- R2D2 on StatelessCartPole (issue #34) ----------------------------------------------------
+R2D2_CONFIG = ROOT / "configs" / "stateless_cartpole_r2d2.yaml"
+STATELESS = "zenrl/StatelessCartPole-v1"
+
+
+def r2d2_main(args: argparse.Namespace) -> None:
+    """``--algo r2d2``: ``zenrl run`` R2D2 (``configs/stateless_cartpole_r2d2.yaml``) and, as the
+    contrast, Ape-X (``configs/cartpole_apex.yaml`` with ``env.id`` set to StatelessCartPole), on
+    the same seeds and wall cap (default 600 s), seeds interleaved (r2d2 0, apex 0, r2d2 1, ...).
+    ``wall_to_solve_s`` is the run's clock from ``zenrl run``'s start to the first greedy eval
+    >= 475 over 10 episodes: ``startup_s`` + ``solve_s`` (since the first env step). No SB3.
+    ``--set`` applies to the R2D2 runs only; ``--skip-contrast``: no Ape-X runs."""
+    seeds = 1 if args.quick else args.seeds
+    cap = args.cap_s if args.cap_s != 900.0 else 600.0  # the issue's budget: 10 minutes
+    load = [os.getloadavg()[0]]
+    runs: dict[str, list[dict[str, Any]]] = {"r2d2": [], "apex": []}
+    with tempfile.TemporaryDirectory(prefix="zenrl-tts-r2d2-") as tmp:
+        for s in range(args.first_seed, args.first_seed + seeds):
+            runs["r2d2"].append(run_zenrl("r2d2", s, cap, Path(tmp), args.set, config=R2D2_CONFIG))
+            load.append(os.getloadavg()[0])
+            if not args.skip_contrast:
+                runs["apex"].append(run_zenrl("apex", s, cap, Path(tmp), [f"env.id={STATELESS}"]))
+                load.append(os.getloadavg()[0])
+    summary: dict[str, Any] = {}
+    for algo, rs in runs.items():
+        for r in rs:
+            r["wall_to_solve_s"] = (round(r["startup_s"] + r["solve_s"], 2)
+                                    if r["solved"] and r["startup_s"] is not None else None)
+        med = median_or_inf([r["wall_to_solve_s"] for r in rs]) if rs else float("inf")
+        summary[algo] = {"solved": sum(r["solved"] for r in rs), "of": len(rs), "median_wall_to_solve_s": finite(med),
+                         "runs": rs}
+    summary["r2d2"]["config"], summary["r2d2"]["overrides"] = "configs/stateless_cartpole_r2d2.yaml", args.set
+    summary["apex"]["config"], summary["apex"]["overrides"] = "configs/cartpole_apex.yaml", [f"env.id={STATELESS}"]
+    r_med, a_med = (median_or_inf([r["wall_to_solve_s"] for r in runs[k]]) for k in ("r2d2", "apex"))
+    result = {"bench": "time_to_solve", "env": STATELESS, "algo": "r2d2", "target_return": TARGET,
+              "eval_episodes": EVAL_EPISODES, "seeds": seeds, "first_seed": args.first_seed, "cap_s": cap,
+              "target_median_wall_to_solve_s": 600.0,
+              "r2d2_meets_target": len(runs["r2d2"]) >= 3 and summary["r2d2"]["solved"] == len(runs["r2d2"])
+              and r_med <= 600.0,
+              "ratio_r2d2_vs_apex": (round(r_med / a_med, 3) if r_med != float("inf") and a_med not in (0.0, float("inf"))
+                                     else None),
+              **summary, "load_avg_1m": [round(x, 2) for x in load],
+              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
+    print(json.dumps(result, default=float))
+
+
 # --------------------------------------------------------------------------------------------
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--algo", choices=["apex", "a3c", "impala"], default="apex")
+    ap.add_argument("--algo", choices=["apex", "a3c", "impala", "r2d2"], default="apex")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per system (>= 3 for a real comparison)")
     ap.add_argument("--quick", action="store_true", help="1 seed each and --cap-s 240")
     ap.add_argument("--cap-s", type=float, default=900.0, help="wall-clock cap per run (unsolved after it)")
@@ -236,7 +288,12 @@ def main() -> None:
                          "actor report, up to this long after the first env step")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the zenrl runs (repeatable), e.g. --set evaluator.interval_s=1")
+    ap.add_argument("--skip-contrast", action="store_true", help="--algo r2d2: no Ape-X runs")
+    ap.add_argument("--first-seed", type=int, default=0, help="--algo r2d2: the first seed")
     args = ap.parse_args()
+    if args.algo == "r2d2":
+        r2d2_main(args)
+        return
     load_start = os.getloadavg()
     seeds = 1 if args.quick else args.seeds
     cap = min(args.cap_s, 240.0) if args.quick else args.cap_s

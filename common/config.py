@@ -66,7 +66,7 @@ class ReplayConfig(_Section):
     max_bytes: Optional[int] = Field(None, ge=1, description="Cap on replay storage in bytes; the ring is sized to min(capacity, max_bytes / item size).")
     alpha: float = Field(0.6, ge=0, le=1, description="Prioritization exponent (0 = uniform).")
     uniform: bool = Field(False, description="Sample uniformly instead of by priority.")
-    frames_per_item: float = Field(1.05, gt=0, le=64, description="Frame mode (image envs): frame ring slots per transition slot; an actor sends about 1 + 1/episode length frames per transition. Too few: the frame ring, not capacity, bounds the transitions stored.")
+    frames_per_item: float = Field(1.05, gt=0, le=64, description="Frame mode (image envs): frame ring slots per transition slot; an actor sends about 1 + 1/episode length frames per transition (R2D2: per sequence, about sequence_length/2 + 1). Too few: the frame ring, not capacity, bounds the transitions stored.")
     min_size: int = Field(1_000, ge=1, description="No samples are served before the replay holds this many transitions.")
     samples_per_insert: Optional[float] = Field(None, gt=0, description="If set, cap sampled/inserted transitions at this ratio (Reverb-style rate limit).")
     spi_tolerance: float = Field(10_000.0, gt=0, description="How many sampled transitions the samples-per-insert limit may run ahead.")

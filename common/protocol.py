@@ -700,8 +700,9 @@ class TransitionBatch(Message):
         if end > MAX_FRAME_ID:
             raise ProtocolError("frame_base", f"frame_base + frames = {end} exceeds {MAX_FRAME_ID}", "field")
         for k, ids in refs.items():
-            if ids.dtype != np.int64 or ids.ndim not in (1, 2):
-                raise ProtocolError(f"data.{k}", f"frame ids must be int64 [B] or [B, k], got {ids.dtype.name}{list(ids.shape)}", "dtype")
+            if ids.dtype != np.int64 or ids.ndim not in (1, 2, 3):  # [B, m+1, k]: R2D2 sequences of stacks
+                raise ProtocolError(f"data.{k}", f"frame ids must be int64 [B], [B, k], [B, m+1] or [B, m+1, k], "
+                                                 f"got {ids.dtype.name}{list(ids.shape)}", "dtype")
             if ids.size and (ids.min() < 0 or ids.max() >= end):
                 raise ProtocolError(f"data.{k}", f"frame ids must be in [0, {end}) (frame_base + frames)", "field")
 

@@ -236,18 +236,7 @@ class ChunkChecker:
         """Frame-mode frames (``{obs field: array[F, ...]}``): each table is an observation
         field of the env, of its dtype, one observation (or one frame of a stacked one) per row,
         inside the field's bounds."""
-        for k, a in frames.items():
-            rule = self.rules.get(k)
-            if rule is None or k.startswith("next_"):
-                return Rejection("fields", f"frame table {k} is not an observation field of the env ({sorted(r for r in self.rules if not r.startswith('next_'))})")
-            if a.dtype != np.dtype(rule.dtype) or a.shape[1:] not in (tuple(rule.shape), tuple(rule.shape[1:])):
-                return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(a.shape[1:])}, the env's {k} is "
-                                           f"{rule.dtype}{list(rule.shape)} (or one frame of it)")
-            if rule.low is not None and a.size and a.shape[1:] == tuple(rule.shape):
-                low, high = rule.low.reshape(rule.shape), rule.high.reshape(rule.shape)
-                if (a < low).any() or (a > high).any():
-                    return Rejection("obs_bounds", f"frames of {k} have values outside the env's observation bounds")
-        return None
+        return check_frame_tables(self.rules, frames)
 
     def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         for k, rows, low, high in self._bounded:
@@ -282,6 +271,24 @@ SEQUENCE_STATE_FIELDS = ("h", "c")
 DEFAULT_MAX_ABS_CELL = 1e6
 
 
+def check_frame_tables(rules: Mapping[str, ObsRule], frames: Mapping[str, np.ndarray]) -> Rejection | None:
+    """Frame-mode frames (``{obs field: array[F, ...]}``) against the observation fields'
+    ``rules`` (``next_*`` rules are not tables): each table an observation field of the env, of
+    its dtype, one observation (or one frame of a stacked one) per row, inside the field's bounds."""
+    for k, a in frames.items():
+        rule = rules.get(k)
+        if rule is None or k.startswith("next_"):
+            return Rejection("fields", f"frame table {k} is not an observation field of the env ({sorted(r for r in rules if not r.startswith('next_'))})")
+        if a.dtype != np.dtype(rule.dtype) or a.shape[1:] not in (tuple(rule.shape), tuple(rule.shape[1:])):
+            return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(a.shape[1:])}, the env's {k} is "
+                                       f"{rule.dtype}{list(rule.shape)} (or one frame of it)")
+        if rule.low is not None and a.size and a.shape[1:] == tuple(rule.shape):
+            low, high = rule.low.reshape(rule.shape), rule.high.reshape(rule.shape)
+            if (a < low).any() or (a > high).any():
+                return Rejection("obs_bounds", f"frames of {k} have values outside the env's observation bounds")
+    return None
+
+
 class SequenceChecker:
     """Checks one chunk of R2D2 sequences (one item = one sequence of m steps, as cut by
     :mod:`zenrl.actor.sequences`) against the run's env spec and bounds, with the interface of
@@ -294,12 +301,16 @@ class SequenceChecker:
     length >= 1 (the valid steps), an episode's end (terminated or truncated) only at a
     sequence's last valid step, ``|reward| <= max_abs_reward``, ``|h| <= 1`` (an LSTM's output)
     and ``|c| <= max_abs_cell``, the observations s_0..s_len (s_len the one after the last valid
-    step; zeros pad the rest) inside the env's finite ``Box`` bounds, priority bound. Frame mode
-    is not supported for sequences: a chunk with frames is rejected."""
+    step; zeros pad the rest) inside the env's finite ``Box`` bounds, priority bound.
+
+    Frame mode (image envs, :mod:`zenrl.actor.sequences`): ``obs/<key>`` are int64 frame ids
+    ``[m+1]`` per item (each observation one frame) or ``[m+1, k]`` (stacks of ``k =
+    actor.frame_stack``), the frames themselves checked as Ape-X's (:func:`check_frame_tables`).
+    ``frame_stack`` None accepts either layout the env allows."""
 
     def __init__(self, obs_rules: Mapping[str, ObsRule], n_actions: int, length: int, lstm_size: int,
                  max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True,
-                 max_abs_cell: float = DEFAULT_MAX_ABS_CELL) -> None:
+                 max_abs_cell: float = DEFAULT_MAX_ABS_CELL, frame_stack: int | None = None) -> None:
         if n_actions < 1 or length < 1 or lstm_size < 1:
             raise ValueError(f"n_actions, length and lstm_size must be >= 1, got {n_actions}, {length}, {lstm_size}")
         self.n_actions, self.length, self.lstm_size = int(n_actions), int(length), int(lstm_size)
@@ -313,16 +324,18 @@ class SequenceChecker:
         # bounds of one observation; checked on the valid observations gathered as [N, ...]
         self._bounded = _tiled_bounds(self.rules, check_obs_bounds)
         self._n_actions = np.uint64(self.n_actions)
+        self.frame_stack = frame_stack
 
     @classmethod
     def from_spaces(cls, observation_space: Any, action_space: Any, length: int, lstm_size: int,
-                    max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True) -> "SequenceChecker":
+                    max_abs_reward: float, max_priority: float, check_obs_bounds: bool = True,
+                    frame_stack: int | None = None) -> "SequenceChecker":
         import gymnasium as gym
 
         if not isinstance(action_space, gym.spaces.Discrete):
             raise ValueError(f"zenrl's replay checks need a Discrete action space, got {action_space}")
         return cls(obs_rules_from_space(observation_space), int(action_space.n), length, lstm_size, max_abs_reward,
-                   max_priority, check_obs_bounds)
+                   max_priority, check_obs_bounds, frame_stack=frame_stack)
 
     def check(self, data: Mapping[str, np.ndarray], priorities: np.ndarray | None,
               fields_checked: bool = False) -> Rejection | None:
@@ -371,15 +384,59 @@ class SequenceChecker:
         return None
 
     def check_frames(self, frames: Mapping[str, np.ndarray]) -> Rejection | None:
-        return Rejection("fields", "R2D2 sequences carry full observations; frame mode is not supported for them")
+        """Frame-mode frames: see :func:`check_frame_tables`."""
+        return check_frame_tables(self.rules, frames)
+
+    def _frame_shapes(self, rule: ObsRule) -> list[tuple[int, ...]]:
+        """The shapes one frame of an observation field may have in frame mode."""
+        whole, one = tuple(rule.shape), tuple(rule.shape[1:])
+        if self.frame_stack is None:
+            return [whole, one] if rule.shape else [whole]
+        return [one] if self.frame_stack else [whole]
 
     def check_frame_fields(self, data: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray]) -> Rejection | None:
-        return self.check_frames(frames)
+        """A frame-mode chunk's layout against the env's spec, exactly: one frame table per
+        observation field, each observation field as int64 ids ``[m+1]`` (whole observations)
+        or ``[m+1, k]`` (stacks of ``k`` frames) per item, the other fields of a sequence, nothing
+        else."""
+        if frames.keys() != self.rules.keys():
+            return Rejection("spec", f"frame tables {sorted(frames)[:8]} differ from the env's observation fields {sorted(self.rules)}")
+        m1 = self.length + 1
+        for k, rule in self.rules.items():
+            a = frames[k]
+            one = tuple(a.shape[1:])
+            if a.dtype != np.dtype(rule.dtype) or one not in self._frame_shapes(rule):
+                return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(one)}, the env's {k} is "
+                                           f"{rule.dtype}{list(rule.shape)} (frame_stack {self.frame_stack})")
+            want = (m1,) if one == tuple(rule.shape) else (m1, int(rule.shape[0]))
+            ids = data.get(k)
+            if ids is None:
+                return Rejection("spec", f"field {k} (frame ids) is missing")
+            if ids.dtype != np.int64 or ids.shape[1:] != want:
+                return Rejection("spec", f"frame ids {k}: {ids.dtype.name}{list(ids.shape[1:])} per item, the env's "
+                                         f"layout needs int64{list(want)}")
+        for k, (dt, shape) in self.required.items():
+            if k in self.rules:
+                continue
+            a = data.get(k)
+            if a is None:
+                return Rejection("spec", f"field {k} is missing")
+            if a.dtype != dt or a.shape[1:] != shape:
+                return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {dt.name}{list(shape)}")
+        extra = sorted(set(data) - set(self.required))
+        if extra:
+            return Rejection("spec", f"field {extra[0][:128]} is not part of a frame-mode R2D2 sequence")
+        return None
 
     def packed_shapes(self) -> dict[str, tuple[tuple[int, ...], ...]]:
-        """The env's uint8 fields of a sequence, with the shape of one item (see
-        :meth:`ChunkChecker.packed_shapes`); no frame tables (frame mode is not supported)."""
-        return {f"data.{k}": (tuple(shape),) for k, (dt, shape) in self.required.items() if dt == np.uint8}
+        """The env's uint8 fields of a sequence, with the shape of one item, and the frame
+        tables of frame mode with the shapes one frame may have (see
+        :meth:`ChunkChecker.packed_shapes`)."""
+        out = {f"data.{k}": (tuple(shape),) for k, (dt, shape) in self.required.items() if dt == np.uint8}
+        for k, r in self.rules.items():
+            if np.dtype(r.dtype) == np.uint8:
+                out[f"frames.{k}"] = tuple(dict.fromkeys(self._frame_shapes(r)))
+        return out
 
     def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
         if not self._bounded:

@@ -87,8 +87,11 @@ class FrameReplay:
         item_spec: the non-frame columns ``{field: ArraySpec}`` (action, reward, ...).
         frame_spec: ``{table: ArraySpec(frame_shape, dtype)}`` one frame of each table.
         ref_stack: ``{field: k}`` per frame field: ``0`` = one frame (ids ``int64[B]``),
-            ``k >= 1`` = a stack of k frames (ids ``int64[B, k]``); each field reads table
-            :func:`~zenrl.common.protocol.frame_table` (field).
+            ``k >= 1`` = a stack of k frames (ids ``int64[B, k]``), or a tuple: the shape of one
+            item's ids (``(m+1,)`` or ``(m+1, k)`` for an R2D2 sequence of m steps: its
+            observations, each one frame or a stack of k); each field reads table
+            :func:`~zenrl.common.protocol.frame_table` (field); a sampled item has the frames
+            laid out as its ids (``[*id shape, *frame shape]``).
         capacity: most transitions stored.
         frames_per_item: frame ring size per transition slot (``frame_capacity = ceil(capacity
             * frames_per_item)``); an actor sends about ``1 + 1 / episode length`` frames per
@@ -97,7 +100,7 @@ class FrameReplay:
         alpha, uniform, eps, seed: as :class:`InMemoryReplay`.
     """
 
-    def __init__(self, item_spec: Spec, frame_spec: Spec, ref_stack: Mapping[str, int], capacity: int,
+    def __init__(self, item_spec: Spec, frame_spec: Spec, ref_stack: Mapping[str, int | tuple[int, ...]], capacity: int,
                  frames_per_item: float = 1.1, max_bytes: int | None = None, alpha: float = 0.6,
                  uniform: bool = False, eps: float = 1e-6, seed: int | None = None) -> None:
         if not frame_spec:
@@ -107,19 +110,27 @@ class FrameReplay:
         if not isinstance(capacity, int) or capacity < 1:
             raise ValueError(f"capacity must be an int >= 1, got {capacity!r}")
         self._frame_spec = {k: v for k, v in frame_spec.items()}
-        self._ref_stack: dict[str, int] = {}
+        self._ref_stack: dict[str, int | tuple[int, ...]] = {}
+        #: the shape of one item's ids per frame field (``()``: one frame)
+        self._ref_shape: dict[str, tuple[int, ...]] = {}
         for f, k in ref_stack.items():
             if frame_table(f) not in self._frame_spec:
                 raise ValueError(f"frame field {f!r} reads table {frame_table(f)!r}, which is not in frame_spec")
-            if isinstance(k, bool) or not isinstance(k, int) or k < 0:
-                raise ValueError(f"ref_stack[{f!r}] must be an int >= 0, got {k!r}")
+            if isinstance(k, tuple):
+                if not k or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 1 for d in k):
+                    raise ValueError(f"ref_stack[{f!r}] as a shape must be a non-empty tuple of ints >= 1, got {k!r}")
+                self._ref_shape[f] = k
+            elif isinstance(k, bool) or not isinstance(k, int) or k < 0:
+                raise ValueError(f"ref_stack[{f!r}] must be an int >= 0 or a shape tuple, got {k!r}")
+            else:
+                self._ref_shape[f] = (k,) if k else ()
             self._ref_stack[f] = k
         clash = set(item_spec) & set(ref_stack)
         if clash:
             raise ValueError(f"fields {sorted(clash)} are both columns and frame fields")
         inner_spec = dict(item_spec)
-        for f, k in self._ref_stack.items():
-            inner_spec[GKEY_PREFIX + f] = ArraySpec((max(k, 1),), "int64")
+        for f, shape in self._ref_shape.items():
+            inner_spec[GKEY_PREFIX + f] = ArraySpec((max(math.prod(shape), 1),), "int64")
         frame_bytes = spec_nbytes(self._frame_spec)
         if max_bytes is not None:
             per_item = spec_nbytes(inner_spec) + frames_per_item * frame_bytes
@@ -178,9 +189,9 @@ class FrameReplay:
     def spec(self) -> dict[str, ArraySpec]:
         """Spec of a sampled item (frame fields as the learner sees them)."""
         out = {k: v for k, v in self._inner.spec.items() if not k.startswith(GKEY_PREFIX)}
-        for f, k in self._ref_stack.items():
+        for f, shape in self._ref_shape.items():
             s = self._frame_spec[frame_table(f)]
-            out[f] = ArraySpec((k, *s.shape) if k else s.shape, s.dtype)
+            out[f] = ArraySpec((*shape, *s.shape), s.dtype)
         return out
 
     @property
@@ -194,7 +205,7 @@ class FrameReplay:
         return self._inner.nbytes + self.frames_stored * self._frame_bytes
 
     @property
-    def wire_spec(self) -> tuple[dict[str, ArraySpec], dict[str, ArraySpec], dict[str, int]]:
+    def wire_spec(self) -> tuple[dict[str, ArraySpec], dict[str, ArraySpec], dict[str, int | tuple[int, ...]]]:
         """``(item_spec, frame_spec, ref_stack)`` this store was built with."""
         item = {k: v for k, v in self._inner.spec.items() if not k.startswith(GKEY_PREFIX)}
         return item, dict(self._frame_spec), dict(self._ref_stack)
@@ -215,12 +226,11 @@ class FrameReplay:
                 raise SpecMismatch(f"frames {t}: {a.shape[0]} frames, other tables have {n_f}")
         if refs.keys() != self._ref_stack.keys():
             raise SpecMismatch(f"frame fields {sorted(refs)} differ from the replay's {sorted(self._ref_stack)}")
-        for f, k in self._ref_stack.items():
+        for f, shape in self._ref_shape.items():
             ids = refs[f]
-            want = 2 if k else 1
-            if ids.dtype.kind not in "iu" or ids.ndim != want or (k and ids.shape[1] != k):
+            if ids.dtype.kind not in "iu" or ids.ndim < 1 or ids.shape[1:] != shape:
                 raise SpecMismatch(f"frame ids {f}: {ids.dtype.name}{list(ids.shape)}, expected integer "
-                                   f"{'[B, %d]' % k if k else '[B]'}")
+                                   f"{['B', *shape]}".replace("'", ""))
         if n_f > self._fcap:
             raise SpecMismatch(f"a chunk of {n_f} frames does not fit a frame ring of {self._fcap}")
         return n_f
@@ -310,15 +320,17 @@ class FrameReplay:
                     hist.bases.popleft()
                     hist.counts.popleft()
                     hist.gbases.popleft()
-            gk = {f: self._resolve(hist, np.asarray(ids, np.int64)) for f, ids in c.refs.items()}
+            # ids of one item flattened: [n, prod(id shape)]
+            gk = {f: self._resolve(hist, np.asarray(ids, np.int64)).reshape(n, max(math.prod(self._ref_shape[f]), 1))
+                  for f, ids in c.refs.items()}
             ok = None
             for g in gk.values():
-                good = g >= 0 if g.ndim == 1 else (g >= 0).all(axis=1)
+                good = (g >= 0).all(axis=1)
                 ok = good if ok is None else ok & good
             dropped = int(n - np.count_nonzero(ok)) if n else 0
             data = dict(c.batch)
             for f, g in gk.items():
-                data[GKEY_PREFIX + f] = g if g.ndim == 2 else g[:, None]
+                data[GKEY_PREFIX + f] = g
             if p is None:
                 p = np.full(n, mp, np.float64)  # what insert() alone would give: the running max
             else:
@@ -364,7 +376,7 @@ class FrameReplay:
 
     def _gkey_shape(self, f: str, ids: np.ndarray) -> np.ndarray:
         """A zero-size stand-in with the shape the column will have (for batch validation)."""
-        k = max(self._ref_stack[f], 1)
+        k = max(math.prod(self._ref_shape[f]), 1)
         return np.broadcast_to(np.zeros((), np.int64), (ids.shape[0], k))
 
     def _evict_for(self, n_f: int) -> None:
@@ -442,9 +454,9 @@ class FrameReplay:
                 data[k] = v
         b = len(s)
         cap = self._fcap
-        for f, k in self._ref_stack.items():
+        for f, shape in self._ref_shape.items():
             ring = self._frames[frame_table(f)]
             slots = s.data[GKEY_PREFIX + f].reshape(-1) % cap
             imgs = ring.take(slots, axis=0, mode="clip")
-            data[f] = imgs.reshape((b, k, *ring.shape[1:]) if k else (b, *ring.shape[1:]))
+            data[f] = imgs.reshape((b, *shape, *ring.shape[1:]))
         return SampleBatch(keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=data)

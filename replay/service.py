@@ -227,7 +227,7 @@ def make_checker(cfg: RunConfig) -> Checker:
         if cfg.algo == "r2d2":
             return SequenceChecker.from_spaces(env.observation_space, env.action_space, cfg.r2d2.sequence_length,
                                                cfg.r2d2.lstm_size, cfg.replay.max_abs_reward, cfg.replay.max_priority,
-                                               cfg.replay.check_obs_bounds)
+                                               cfg.replay.check_obs_bounds, frame_stack=cfg.actor.frame_stack)
         return ChunkChecker.from_spaces(env.observation_space, env.action_space, cfg.actor.n_step,
                                         cfg.replay.max_abs_reward, cfg.replay.max_priority, cfg.replay.check_obs_bounds,
                                         frame_stack=cfg.actor.frame_stack)

@@ -207,7 +207,10 @@ class FrameStore:
     def allocate(cls, c: Chunk, rcfg: Any, seed: int) -> "FrameStore":
         refs = c.msg.frame_refs()
         batch = {k: v for k, v in c.data.items() if k not in refs}
-        ref_stack = {k: (0 if v.ndim == 1 else int(v.shape[1])) for k, v in refs.items()}
+        # the ids' shape per item: [B] one frame, [B, k] a stack of k (Ape-X; an R2D2 sequence of
+        # m+1 single frames has the same layout), [B, m+1, k] an R2D2 sequence of stacks
+        ref_stack = {k: (0 if v.ndim == 1 else int(v.shape[1]) if v.ndim == 2 else tuple(int(d) for d in v.shape[1:]))
+                     for k, v in refs.items()}
         buf = FrameReplay(spec_of_batch(batch), spec_of_batch(c.msg.frames), ref_stack, rcfg.capacity,
                           frames_per_item=rcfg.frames_per_item, max_bytes=rcfg.max_bytes, alpha=rcfg.alpha,
                           uniform=rcfg.uniform, seed=seed)

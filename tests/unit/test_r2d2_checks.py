@@ -97,7 +97,10 @@ def test_fields_dtypes_and_shapes_against_the_sequence_spec():
     d, p = _chunk()
     d["meta/policy_version"] = np.zeros(len(SEQS), np.int64)  # the replay's column: only with fields_checked
     assert _checker().check(d, p, fields_checked=True) is None
-    assert _checker().check_frames({"obs": np.zeros((1, 2), np.float32)}).reason == "fields"
+    # frame mode (tests/unit/test_r2d2_frames.py): a table must be an observation field, of its dtype
+    assert _checker().check_frames({"obs": np.zeros((1, 2), np.float32)}) is None
+    assert _checker().check_frames({"junk": np.zeros((1, 2), np.float32)}).reason == "fields"
+    assert _checker().check_frames({"obs": np.zeros((1, 2), np.float64)}).reason == "fields"
 
 
 def test_obs_bounds_check_off_keeps_the_other_checks():
