@@ -530,6 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(s)
     s.add_argument("--id", default="league", help="service id")
     s.add_argument("--json", action="store_true", help="status: print JSON")
+    _add_credential_args(s)
     s.set_defaults(func=cmd_league)
 
     s = sub.add_parser("router", help="a standalone Zenoh router (Python)")
