@@ -221,13 +221,15 @@ class Node:
         self.close_linger_s = 0.0
 
     @classmethod
-    def from_config(cls, tcfg: Any) -> "Node":
-        """A node for a :class:`~zenrl.common.config.TransportConfig`."""
+    def from_config(cls, tcfg: Any, max_rx_bytes: int | None = None) -> "Node":
+        """A node for a :class:`~zenrl.common.config.TransportConfig`; ``max_rx_bytes``: the
+        largest message this node takes (default ``tcfg.max_message_bytes``), for a role whose
+        inputs are bounded tighter than what it sends (the replay: chunks vs sample replies)."""
         # Zenoh's own receive cap (1 GiB by default) at twice zenrl's message cap: a larger message
         # is dropped (by Zenoh, uncounted) as its fragments arrive, not reassembled and copied in
         # full before decoding refuses it (a peer could otherwise cost a receiver 2 GiB a message);
         # one up to twice the cap still reaches zenrl, which refuses and counts it
-        rx = {"max_message_size": 2 * int(tcfg.max_message_bytes) + RX_HEADROOM_BYTES}
+        rx = {"max_message_size": 2 * int(max_rx_bytes or tcfg.max_message_bytes) + RX_HEADROOM_BYTES}
         node = cls(tcfg.router, tcfg.connect_timeout_s, config_file=tcfg.client_config,
                    extra={"transport": {"shared_memory": {"enabled": bool(tcfg.shared_memory)}, "link": {"rx": rx}}})
         node.close_linger_s = tcfg.close_linger_s

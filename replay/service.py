@@ -63,7 +63,8 @@ class ReplayService:
             self.journal = Journal(log_dir, rcfg.segment_items or max(1, rcfg.capacity // 8), rcfg.flush_interval_s,
                                    rcfg.snapshot_interval_s, rcfg.durable_retry_s, rcfg.durable_backlog_bytes)
         checker = make_checker(cfg) if rcfg.check_semantics else None
-        self.ingestor = Ingest(rcfg, cfg.seed, self.max_bytes, checker, self._lock, self.journal)
+        self.ingestor = Ingest(rcfg, cfg.seed, min(rcfg.max_chunk_bytes, self.max_bytes), checker, self._lock,
+                               self.journal)
         self.ingestor.origins = origins = Origins()
         self.sampler = Sampler(rcfg, cfg.seed, self.max_bytes, self._lock, lambda: self.buffer, self.ingestor.rejects,
                                self.keys.sample, checker is not None, origins, self.ingestor.reject)
@@ -235,10 +236,21 @@ def make_checker(cfg: RunConfig) -> Checker:
         env.close()
 
 
+#: what the replay's session must take besides chunks: a priority update of the largest batch
+#: (65,536 keys and priorities) and sample requests are well below this
+_CONTROL_BYTES = 2 * 1024 * 1024
+
+
+def rx_cap(cfg: RunConfig) -> int:
+    """The largest message the replay's session receives: chunks up to ``replay.max_chunk_bytes``
+    (and the small control messages), never more than the transport's cap."""
+    return min(cfg.transport.max_message_bytes, max(cfg.replay.max_chunk_bytes, _CONTROL_BYTES))
+
+
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:
     """Entry point of ``zenrl replay``: build, run in the role loop until ``stop``, close the
     session. Raises :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
-    with Node.from_config(cfg.transport) as node:
+    with Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg)) as node:
         svc = ReplayService(cfg, node, run_id, service_id, stop)
         # idle waits no longer than the stats interval, so that a short one is kept
         cadence = Cadence(cfg.replay.stats_interval_s, idle_s=min(0.5, cfg.replay.stats_interval_s))

@@ -24,8 +24,8 @@ from tests.integration.test_health import _health
 pytestmark = pytest.mark.integration
 
 B = 16
-#: the run's transport.max_message_bytes: what the barrage's messages are sized to (a replay of
-#: small transitions needs no more; the memory bound scales with it, see docs/architecture.md)
+#: replay.max_chunk_bytes at its default: what the barrage's messages are sized to (the replay's
+#: session takes no larger message; the memory bound scales with it, see docs/architecture.md)
 MAX_MESSAGE = 16 * 1024 * 1024
 
 
@@ -116,8 +116,7 @@ def test_each_attack_class_is_counted_and_memory_stays_bounded(router, run_id, p
     capacity = 2_000_000  # Ape-X's replay size
     replay = procs.zenrl("replay", ["replay", "--router", router, "--run-id", run_id, "--set", f"runs_dir={tmp_path}",
                                     "--set", "replay.stats_interval_s=0.3", "--set", "replay.min_size=1",
-                                    "--set", f"replay.capacity={capacity}", "--set", "replay.quarantine_rejections=5",
-                                    "--set", f"transport.max_message_bytes={MAX_MESSAGE}"])
+                                    "--set", f"replay.capacity={capacity}", "--set", "replay.quarantine_rejections=5"])
     rng = np.random.default_rng(0)
     honest_chunks = 150
     with Node(router, 10.0) as node:
