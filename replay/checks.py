@@ -88,6 +88,15 @@ def _required_fields(required: Mapping[str, tuple[np.dtype, tuple[int, ...]]], o
     return None
 
 
+def frame_shapes(rule: ObsRule, frame_stack: int | None) -> list[tuple[int, ...]]:
+    """The shapes one frame of an observation field may have in frame mode (``frame_stack``:
+    the run's ``actor.frame_stack``; None: unknown, either form)."""
+    whole, one = tuple(rule.shape), tuple(rule.shape[1:])
+    if frame_stack is None:
+        return [whole, one] if rule.shape else [whole]
+    return [one] if frame_stack else [whole]
+
+
 class ChunkChecker:
     """Checks one chunk's ``data`` (flat ``{name: array[B, ...]}``) and ``priorities``
     (float32[B] or None) against the run's env spec and bounds.
@@ -132,15 +141,8 @@ class ChunkChecker:
                 out[f"data.{k}"] = (tuple(shape),)
         for k, r in self.rules.items():
             if not k.startswith("next_") and np.dtype(r.dtype) == np.uint8:
-                out[f"frames.{k}"] = tuple(dict.fromkeys(self._frame_shapes(r)))
+                out[f"frames.{k}"] = tuple(dict.fromkeys(frame_shapes(r, self.frame_stack)))
         return out
-
-    def _frame_shapes(self, rule: ObsRule) -> list[tuple[int, ...]]:
-        """The shapes one frame of an observation field may have in frame mode."""
-        whole, one = tuple(rule.shape), tuple(rule.shape[1:])
-        if self.frame_stack is None:
-            return [whole, one] if rule.shape else [whole]
-        return [one] if self.frame_stack else [whole]
 
     def check_frame_fields(self, data: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray]) -> Rejection | None:
         """A frame-mode chunk's layout against the env's spec, exactly: one frame table per
@@ -155,7 +157,7 @@ class ChunkChecker:
         for k, rule in obs.items():
             a = frames[k]
             one = tuple(a.shape[1:])
-            if a.dtype != np.dtype(rule.dtype) or one not in self._frame_shapes(rule):
+            if a.dtype != np.dtype(rule.dtype) or one not in frame_shapes(rule, self.frame_stack):
                 return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(one)}, the env's {k} is "
                                            f"{rule.dtype}{list(rule.shape)} (frame_stack {self.frame_stack})")
             stack = 0 if one == tuple(rule.shape) else int(rule.shape[0])
@@ -387,13 +389,6 @@ class SequenceChecker:
         """Frame-mode frames: see :func:`check_frame_tables`."""
         return check_frame_tables(self.rules, frames)
 
-    def _frame_shapes(self, rule: ObsRule) -> list[tuple[int, ...]]:
-        """The shapes one frame of an observation field may have in frame mode."""
-        whole, one = tuple(rule.shape), tuple(rule.shape[1:])
-        if self.frame_stack is None:
-            return [whole, one] if rule.shape else [whole]
-        return [one] if self.frame_stack else [whole]
-
     def check_frame_fields(self, data: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray]) -> Rejection | None:
         """A frame-mode chunk's layout against the env's spec, exactly: one frame table per
         observation field, each observation field as int64 ids ``[m+1]`` (whole observations)
@@ -405,7 +400,7 @@ class SequenceChecker:
         for k, rule in self.rules.items():
             a = frames[k]
             one = tuple(a.shape[1:])
-            if a.dtype != np.dtype(rule.dtype) or one not in self._frame_shapes(rule):
+            if a.dtype != np.dtype(rule.dtype) or one not in frame_shapes(rule, self.frame_stack):
                 return Rejection("fields", f"frames of {k}: {a.dtype.name}{list(one)}, the env's {k} is "
                                            f"{rule.dtype}{list(rule.shape)} (frame_stack {self.frame_stack})")
             want = (m1,) if one == tuple(rule.shape) else (m1, int(rule.shape[0]))
@@ -435,7 +430,7 @@ class SequenceChecker:
         out = {f"data.{k}": (tuple(shape),) for k, (dt, shape) in self.required.items() if dt == np.uint8}
         for k, r in self.rules.items():
             if np.dtype(r.dtype) == np.uint8:
-                out[f"frames.{k}"] = tuple(dict.fromkeys(self._frame_shapes(r)))
+                out[f"frames.{k}"] = tuple(dict.fromkeys(frame_shapes(r, self.frame_stack)))
         return out
 
     def _check_bounds(self, data: Mapping[str, np.ndarray]) -> Rejection | None:
