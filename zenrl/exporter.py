@@ -108,6 +108,9 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "queue_dropped": ("queue_dropped", COUNTER, "Gradients dropped on a full queue (A3C)."),
         "queue_len": ("queue_length_messages", GAUGE, "Gradient messages waiting in the learner's queue (A3C)."),
         "params_restored": ("params_restored", COUNTER, "Parameters restored after a bad update (A3C)."),
+        "poisoned_items": ("poisoned_items", COUNTER, "Sampled items left out of an update as poison (out-of-range observation, non-finite value or TD, or found by bisection) and reported to the replay."),
+        "repaired_updates": ("repaired_updates", COUNTER, "Updates taken on the rest of a batch after poisoned items were left out."),
+        "poisoned_unrolls": ("poisoned_unrolls", COUNTER, "Unrolls left out of an update because they alone made it non-finite (IMPALA)."),
     },
     "replay": {
         "size": ("size_items", GAUGE, "Transitions held by the replay."),
@@ -119,6 +122,8 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "sample_batches_total": ("sampled_batches", COUNTER, "Sample batches served."),
         "stale_priority_updates": ("stale_priority_updates", COUNTER, "Priority updates for evicted items."),
         "not_ready_replies": ("not_ready_replies", COUNTER, "Sample requests answered not ready."),
+        "poison_removed": ("poison_removed_items", COUNTER, "Items the learner reported as poison, removed from sampling and charged to their sender."),
+        "poison_stale": ("poison_stale_keys", COUNTER, "Poisoned keys reported after their item was evicted or removed."),
         "dropped_queue_full": ("dropped_queue_full", COUNTER, "Chunks dropped on a full ingest queue."),
         "dropped_stopping": ("dropped_stopping", COUNTER, "Chunks dropped while stopping."),
         "dropped_quarantined": ("dropped_quarantined", COUNTER, "Chunks dropped from quarantined senders."),

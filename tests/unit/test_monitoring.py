@@ -19,7 +19,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from zenrl.common import protocol as P
 from tests.unit.test_k8s_manifests import tree  # noqa: F401 (fixture)
-from zenrl.exporter import STATS, RunState, registry_for
+from zenrl.exporter import HANDLED, STATS, RunState, registry_for
 
 ROOT = Path(__file__).resolve().parents[2]
 MON = ROOT / "deploy" / "monitoring"
@@ -383,3 +383,18 @@ def test_k8s_exporter_pod_is_hardened():
     assert sc["allowPrivilegeEscalation"] is False and sc["readOnlyRootFilesystem"] is True
     assert sc["capabilities"]["drop"] == ["ALL"]
     assert "/tmp" in {m["mountPath"] for m in spec["containers"][0]["volumeMounts"]}
+
+
+def test_every_numeric_replay_stat_has_a_name(tmp_path):
+    """A stat the replay publishes but the table does not name reaches Prometheus only as the
+    catch-all ``zenrl_stat``, without help text or counter type: name each one."""
+    from zenrl.common.config import load_config
+    from zenrl.replay.service import ReplayService
+
+    cfg = load_config(str(ROOT / "configs" / "cartpole_apex.yaml"))
+    cfg = cfg.model_copy(update={"runs_dir": str(tmp_path)})
+    vals = ReplayService(cfg, None, "x").stats_values()
+    assert "poison_removed" in vals
+    unnamed = sorted(k for k, v in vals.items()
+                     if isinstance(v, (int, float)) and k not in STATS["replay"] and k not in HANDLED)
+    assert not unnamed, f"replay stats missing from zenrl/exporter.py STATS: {unnamed}"
