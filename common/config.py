@@ -142,6 +142,13 @@ class LearnerConfig(_Section):
 
     guard_max_bad_updates: int = Field(10, ge=1, description="Non-finite loss or gradients skip the update; after this many skipped in a row the learner rolls back to its last good checkpoint (or to the last good parameters it published).")
     guard_log_interval_s: float = Field(10.0, gt=0, description="Skipped updates are logged at most once per this many seconds (with a count).")
+    init_from: str | None = Field(None, description=(
+        "Ape-X/R2D2: a fresh learner starts from these weights instead of a random initialisation: a "
+        "checkpoint of the same algorithm and network (read weights-only), or a `zenrl export` file with "
+        "learner.init_exported. Ignored when the learner resumes from its own checkpoint."))
+    init_exported: bool = Field(False, description=(
+        "learner.init_from is a `zenrl export` TorchScript file: a program, loaded only because the config "
+        "says so (as opponents.pool's exported: true)."))
     max_abs_obs: float = Field(1e6, gt=0, description="Ape-X/R2D2: a sampled item with a floating-point observation of larger magnitude is left out of the step and reported to the replay as poisoned (it removes the item and charges its sender). An env's Box may allow such values (CartPole's velocity bounds are float32's max) but they make the network's float32 forward overflow; the default is far above every shipped env's observations.")
     @model_validator(mode="after")
     def _check(self) -> "LearnerConfig":
@@ -370,6 +377,8 @@ class RunConfig(_Section):
     def _check(self) -> "RunConfig":
         if self.evaluator.policy == "sample" and self.algo not in ("a3c", "impala"):
             raise ValueError("evaluator.policy 'sample' needs algo a3c or impala (a Q network has no action distribution)")
+        if self.learner.init_from and self.algo not in ("apex", "r2d2"):
+            raise ValueError(f"learner.init_from is for algo apex or r2d2, not {self.algo}")
         return self
 
 

@@ -218,3 +218,29 @@ class ExportedPlayer:
             else:
                 x = torch.as_tensor(np.ascontiguousarray(obs))
             return int(self.module(x))
+
+
+def initial_q_weights(path: str | os.PathLike[str], exported: bool) -> dict[str, torch.Tensor]:
+    """The Q-network weights (``state_dict``) a fresh Ape-X/R2D2 learner starts from
+    (``learner.init_from``): the online network of a checkpoint, read weights-only, or, with
+    ``exported``, the network inside a ``zenrl export`` file (whose scripted module holds it as
+    ``net``). A :class:`ZenrlError` names the file and what is wrong with it."""
+    if exported:
+        if not is_exported(path):
+            raise ZenrlError(f"learner.init_from {str(path)!r} is not a `zenrl export` file (learner.init_exported is set)")
+        module = ExportedPlayer(path).module
+        sd = {k[len("net."):]: v.detach().clone() for k, v in module.state_dict().items() if k.startswith("net.")}
+        if not sd:
+            raise ZenrlError(f"learner.init_from {str(path)!r}: the exported file holds no Q-network weights")
+        return sd
+    if is_exported(path):
+        raise ZenrlError(f"learner.init_from {str(path)!r} is a `zenrl export` file: set learner.init_exported "
+                         "to load it (it is a program)")
+    try:
+        state = read_checkpoint(path)
+    except CheckpointError as e:
+        raise ZenrlError(f"learner.init_from: {e}") from None
+    online = state.learner.get("online") if isinstance(getattr(state, "learner", None), Mapping) else None
+    if not isinstance(online, Mapping):
+        raise ZenrlError(f"learner.init_from {str(path)!r} is not an Ape-X or R2D2 checkpoint (no Q-network in it)")
+    return dict(online)

@@ -23,6 +23,7 @@ from zenrl.common.config import RunConfig
 from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import RateMeter
 from zenrl.common.networks import arch_fingerprint, params_to_arrays
+from zenrl.common.policy_io import initial_q_weights
 from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
@@ -47,6 +48,12 @@ class ApexLearner(LearnerBase):
         self._latest_weights: bytes | None = None
         if self.wants_resume(resume):
             self.restore()
+        elif cfg.learner.init_from:
+            # a fresh learner from given weights (a league's main agent from an earlier policy):
+            # the first broadcast hands them to the actors
+            self.dqn.load_initial(initial_q_weights(cfg.learner.init_from, cfg.learner.init_exported),
+                                  cfg.learner.init_from)
+            log.info("initial weights from %s", cfg.learner.init_from)
         self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
 
     def make_core(self) -> DQNLearner:

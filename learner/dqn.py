@@ -20,6 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from zenrl.common.errors import ZenrlError
 from zenrl.common.config import LearnerConfig, NetworkConfig
 from zenrl.common.networks import QNetwork, rename_prefix, to_tensors
 from zenrl.common.specs import ArraySpec
@@ -327,6 +328,18 @@ class DQNLearner:
         return params_finite(self.online.parameters()) and params_finite(self.target.parameters())
 
     # -- training state ----------------------------------------------------------------------
+    def load_initial(self, weights: Mapping[str, Any], source: str) -> None:
+        """Start from ``weights`` (a Q-network ``state_dict``, ``learner.init_from``): online and
+        target alike, the optimizer fresh. A :class:`ZenrlError` names ``source`` if the shapes or
+        names differ from this network's."""
+        try:
+            self.online.load_state_dict(weights)
+        except (RuntimeError, KeyError) as e:
+            first = str(e).strip().splitlines()
+            raise ZenrlError(f"learner.init_from {source!r} does not fit this network ({type(self.online).__name__}): "
+                             f"{first[1].strip() if len(first) > 1 else first[0]}") from None
+        self.target.load_state_dict(self.online.state_dict())
+
     def state_dict(self) -> dict[str, Any]:
         return {"online": self.online.state_dict(), "target": self.target.state_dict(),
                 "optimizer": self.opt.state_dict(), "updates": self.updates}
