@@ -237,7 +237,8 @@ class League:
 
     def distribution(self, player: str) -> dict[str, float]:
         """``{opponent: probability}`` of ``player``'s next opponent, over the players
-        available now. Main: ``selfplay_share`` itself, the rest PFSP over the frozen players
+        available now. Main: ``selfplay_share`` itself, ``bot_share`` PFSP over the bots alone, the
+        rest PFSP over every frozen player
         (all of it to whichever side is the only one available). Exploiter: the current main
         agent. An empty dict when nobody can be played (then the caller falls back to a bot).
         ``KeyError`` for a player that is not a learning agent."""
@@ -250,7 +251,11 @@ class League:
         share = self.cfg.selfplay_share if self.available(player) else 0.0
         if not frozen:
             return {player: 1.0} if share > 0 else {}
-        out = {o: (1.0 - share) * q for o, q in self.pfsp(player, frozen).items()}
+        bots = [o for o in frozen if self.players[o].kind == BOT]
+        bot_share = self.cfg.bot_share if bots else 0.0
+        out = {o: (1.0 - share - bot_share) * q for o, q in self.pfsp(player, frozen).items()}
+        for o, q in (self.pfsp(player, bots).items() if bot_share > 0 else ()):
+            out[o] += bot_share * q
         if share > 0:
             out[player] = out.get(player, 0.0) + share
         return out

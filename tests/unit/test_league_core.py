@@ -85,6 +85,26 @@ def test_main_mix_pfsp_over_frozen_plus_selfplay():
     assert d["main"] == pytest.approx(0.35)
 
 
+def test_bot_share_keeps_beaten_bots_in_the_mix():
+    lg = League(cfg(bot_share=0.2), now=0.0)
+    lg.hear_weights("main", weights(5), now=1.0)
+    for o in (1, 1, 1, -1):
+        lg.record("main", "cheese", o)
+    sid = lg.add_snapshot("main", now=2.0)
+    # x: cheese 0.7, teriyaki 0.5, the snapshot 0.5 -> hard weights 0.09, 0.25, 0.25 over all
+    # frozen players; 0.09, 0.25 over the bots alone
+    every = np.array([0.09, 0.25, 0.25]) / 0.59
+    bots = np.array([0.09, 0.25]) / 0.34
+    d = lg.distribution("main")
+    assert d["cheese"] == pytest.approx(0.45 * every[0] + 0.2 * bots[0])
+    assert d["teriyaki"] == pytest.approx(0.45 * every[1] + 0.2 * bots[1])
+    assert d[sid] == pytest.approx(0.45 * every[2])
+    assert d["main"] == pytest.approx(0.35)
+    assert sum(d.values()) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="bot_share"):
+        cfg(bot_share=0.7)  # 0.35 + 0.7 > 1
+
+
 def test_exploiter_plays_only_the_current_main():
     lg = League(cfg(), now=0.0)
     assert lg.distribution("exploiter") == {}
