@@ -853,7 +853,9 @@ def start_replays(procs: Procs, node: Any, ep: str, args: argparse.Namespace, na
         run = f"bench{uuid.uuid4().hex[:8]}"
         keys = P.Keys(run)
         stats = StatsWatch(node, keys)
-        p = procs.start(f"replay-{name}-{variant}", replay_argv(ep, run, capacity, args.shm, *extra), checkout=checkout)
+        mine = args.service_set if variant == "service" else []
+        p = procs.start(f"replay-{name}-{variant}", replay_argv(ep, run, capacity, args.shm, *extra, *mine),
+                        checkout=checkout)
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, f"replay service ({variant})")
         out[variant] = (run, p, stats)
     return out
@@ -1009,6 +1011,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--baseline", default=None, metavar="DIR",
                     help="also measure the replay of the zenrl checkout DIR (run with DIR/.venv) in the same rounds: "
                          "an A/B of the replay's code, e.g. --baseline /path/to/main")
+    ap.add_argument("--service-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a replay option for this checkout's replay only (not --baseline's), e.g. for an A/B of a setting")
     ap.add_argument("--codec", choices=["lz4"], default=None,
                     help="compress the chunks' uint8 arrays as actor.compress: lz4 does (--images)")
     ap.add_argument("--batch", type=int, default=SAMPLE_BATCH, help=argparse.SUPPRESS)

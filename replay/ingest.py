@@ -13,8 +13,9 @@ bytes; a quarantined source's chunk is dropped unread, an oversized one refused 
    (:mod:`zenrl.replay.checks`, with ``replay.check_semantics``);
 4. the good ones are inserted together and each is appended to the journal.
 
-The FIFO holds ``max(1, replay.queue_max_bytes // chunk cap)`` chunks; when it is full, Zenoh's
-receive thread waits, and with it the senders (BLOCK). That wait must stay below Zenoh's 5 s fuse
+The FIFO holds ``min(replay.queue_size, max(1, replay.queue_max_bytes // chunk cap))`` chunks
+(so what waits there stays within ``queue_max_bytes``); when it is full, Zenoh's receive thread
+waits, and with it the senders (BLOCK). That wait must stay below Zenoh's 5 s fuse
 (the sending side closes a link stalled that long): :meth:`Ingest.relieve`, run every
 ``drop_after_s / 4`` by a thread of its own, drops and counts (``dropped_queue_full``) what waits
 in the FIFO while the ingest thread has been busy with one batch for ``replay.drop_after_s``.
@@ -69,8 +70,8 @@ class Ingest:
         #: where chunks wait (``get()``, ``get_nowait()`` of :class:`~zenrl.common.transport.Received`)
         self.inbox: Any | None = None
         #: chunks the inbox holds: as many of the largest admitted chunk as ``queue_max_bytes`` takes
-        #: (at least one), so that what waits there stays within it
-        self.inbox_capacity = max(1, rcfg.queue_max_bytes // max_bytes)
+        #: (at least one, at most ``queue_size``), so that what waits there stays within it
+        self.inbox_capacity = min(rcfg.queue_size, max(1, rcfg.queue_max_bytes // max_bytes))
         #: chunks the ingest thread has taken from the inbox and not finished
         self.in_hand = 0
         #: monotonic time the ingest thread started on its current batch; None between batches
@@ -112,21 +113,38 @@ class Ingest:
             self._busy_since = None
 
     def _pull(self, first: Any) -> Iterator[tuple[bytes, str]]:
-        """``first`` and the chunks that wait behind it, taken one at a time as
-        :meth:`ingest_many` decodes them (so that, while one is decoded, Zenoh's receive thread
-        refills the slot it left: a small inbox still gives large batches), up to
-        ``replay.ingest_batch_chunks`` chunks and ``replay.queue_max_bytes`` bytes taken."""
-        taken, held, r = 0, 0, first
-        while r is not None:
+        """``first`` and the chunks that wait behind it, up to ``replay.ingest_batch_chunks``
+        chunks and ``replay.queue_max_bytes`` bytes. What waits in the inbox is taken at once
+        (leaving it empty: Zenoh's receive thread, if it waited on a full inbox, is woken once
+        and refills it while the batch is ingested, not once per chunk); then, while there is
+        room, what arrived meanwhile, one chunk at a time as they are decoded."""
+        taken, held = 0, 0
+        limit_n, limit_b = self.rcfg.ingest_batch_chunks, self.rcfg.queue_max_bytes
+        waiting, size = [first], first.nbytes
+        while len(waiting) < min(limit_n, self.inbox_capacity + 1) and size < limit_b:
+            r = self.inbox.get_nowait()
+            if r is None:
+                break
+            waiting.append(r)
+            size += r.nbytes
+        for i, r in enumerate(waiting):
+            item = self._take(r)
+            waiting[i] = None  # a dropped chunk's buffer goes now
+            if item is not None:
+                taken += 1
+                held += len(item[0])
+                self.in_hand = taken
+                yield item
+        while self.inbox_capacity == 1 and taken < limit_n and held < limit_b:
+            r = self.inbox.get_nowait()
+            if r is None:
+                return
             item = self._take(r)
             if item is not None:
                 taken += 1
                 held += len(item[0])
                 self.in_hand = taken
                 yield item
-            if taken >= self.rcfg.ingest_batch_chunks or held >= self.rcfg.queue_max_bytes:
-                return
-            r = self.inbox.get_nowait()
 
     def _take(self, r: Any) -> tuple[bytes, str] | None:
         """A received chunk's ``(payload, key)``, or None when it is dropped unread: its source is
