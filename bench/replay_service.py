@@ -1,11 +1,13 @@
-"""Replay service throughput over Zenoh (issue 2): a real ``zenrl replay`` process vs raw Zenoh.
+"""Replay service throughput over Zenoh (issues 2, 37): a real ``zenrl replay`` process vs raw Zenoh.
 
 Measures, in one run, on loopback through an in-process Zenoh router (every other party is a
-separate OS process, all Zenoh clients of that router):
+separate OS process, all Zenoh clients of that router, all with the transport settings a zenrl
+role gets from its config: shared memory off unless ``--shm``, the replay's receive cap on the
+receivers):
 
   * ``ingest`` - transitions/s inserted by a ``zenrl replay`` process fed by 2 publisher
-    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of actor.chunk_size (default 256) transitions with
-    priorities), measured at the receiver from the service's own stats
+    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of actor.chunk_size (default
+    256) transitions with priorities), measured at the receiver from the service's own stats
     (``inserted_total`` with ``replay.stats_interval_s`` = 0.05 s);
   * ``raw`` - the same byte stream (the same encoded ``transitions`` messages, put with the
     same BLOCK publisher settings) from 2 publisher processes to a raw Zenoh subscriber process
@@ -13,21 +15,35 @@ separate OS process, all Zenoh clients of that router):
     (first to last receipt);
   * ``store_only`` (``--images``) - the ceiling of any receiver that keeps what it gets: the
     same publishers as ``ingest`` (``ZenohReplayClient``) to a subscriber process that takes the
-    bytes and copies them into a ring of the replay's frame bytes, nothing else;
+    bytes and copies them into a pre-touched ring of the replay's frame bytes, nothing else;
+    ``service_fraction_of_store_only`` = median service rate / median store-only rate (target
+    >= 0.8), with a learner-like sampler (batch 128, 4 requests in flight, ``SamplePrefetcher``
+    over the replay's queryable; ``--sample-rate`` caps it, ``--no-sampler`` leaves it out)
+    running through every service round;
+  * ``threads`` - per thread of the receiving process (the replay, the store-only receiver), over
+    each round: CPU, wake-ups, preemptions and minor page faults per chunk (``/proc``; zenrl's
+    threads are named, Zenoh's runtime names its own: ``rx-0``, ``tx-0``, ...);
   * ``checks`` - CPU time per chunk of the service's ingest path (decode, validate, insert) with
     ``replay.check_semantics`` on and off, in process: ``checks_overhead_ratio`` (target <= 1.05);
   * ``sample`` - batches/s of 512 served by the replay to one client process keeping 4 requests
-    in flight (``SamplePrefetcher``), after the ingest rounds filled it.
+    in flight (``SamplePrefetcher``), after the ingest rounds filled it (CartPole mode).
 
-Raw and service rounds alternate (raw, service, raw, service, ...) and the medians are
-compared: ``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
+Rounds alternate (raw, [store-only,] service, ...) and medians are compared:
+``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
+``--baseline DIR`` adds, in the same rounds, service rounds on the replay of another zenrl
+checkout (run with DIR/.venv): ``service_vs_baseline`` is an A/B of the replay's code on the same
+machine, publishers and router.
 
 Progress goes to stderr; the last stdout line is one JSON object.
 
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
-    python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks
+    python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks (~5 min)
+    python bench/replay_service.py --images --baseline ../main   # ... and main's replay, same rounds
     python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
+
+For diagnosis: ``--kinds``, ``--rounds``, ``--service-only``, ``--service-set KEY=VALUE`` (an
+option for this checkout's replay only), ``--codec lz4``, ``--shm``.
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
 ``--role sampler``.
