@@ -98,8 +98,11 @@ class Ingest:
         together with what else waits (one insert and tree update for many chunks). Returns items
         inserted; 0 when the inbox is closed (the service is stopping)."""
         first = None if self.inbox is None else self.inbox.get()
-        if first is None:
-            self.closing.wait(0.2)  # closed (or not attached): stopping, never a spin
+        if first is None:  # closed (or not attached): stopping; wait, never spin
+            if self.closing.is_set():
+                time.sleep(0.01)
+            else:
+                self.closing.wait(0.2)
             return 0
         return self._ingest_from(first)
 
@@ -114,10 +117,11 @@ class Ingest:
 
     def _pull(self, first: Any) -> Iterator[tuple[bytes, str]]:
         """``first`` and the chunks that wait behind it, up to ``replay.ingest_batch_chunks``
-        chunks and ``replay.queue_max_bytes`` bytes. What waits in the inbox is taken at once
-        (leaving it empty: Zenoh's receive thread, if it waited on a full inbox, is woken once
-        and refills it while the batch is ingested, not once per chunk); then, while there is
-        room, what arrived meanwhile, one chunk at a time as they are decoded."""
+        chunks and ``replay.queue_max_bytes`` bytes (the first always). What waits in the inbox
+        is taken at once (leaving it empty: Zenoh's receive thread, if it waited on a full
+        inbox, is woken once and refills it while the batch is ingested, not once per chunk).
+        An inbox of one chunk is also taken from as the batch is decoded, so that what the
+        receive thread puts in meanwhile joins the batch."""
         taken, held = 0, 0
         limit_n, limit_b = self.rcfg.ingest_batch_chunks, self.rcfg.queue_max_bytes
         waiting, size = [first], first.nbytes
@@ -191,7 +195,9 @@ class Ingest:
 
     def relief_unit(self) -> None:
         """The relief thread's unit: :meth:`relieve` every ``replay.drop_after_s / 4``."""
-        if not self.closing.wait(self.rcfg.drop_after_s / 4):
+        if self.closing.is_set():  # stopping: wait for the thread's stop, never spin
+            time.sleep(0.05)
+        elif not self.closing.wait(self.rcfg.drop_after_s / 4):
             self.relieve()
 
     # -- decode, check, insert -------------------------------------------------------------------
