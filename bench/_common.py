@@ -43,11 +43,14 @@ class Procs:
         self.tmp = tmp
         self.procs: list[subprocess.Popen] = []
 
-    def start(self, name: str, argv: list[str], capture: bool = False) -> subprocess.Popen:
-        """``capture``: stdout is a text pipe (for a child that prints a JSON result)."""
+    def start(self, name: str, argv: list[str], capture: bool = False, checkout: Path | None = None) -> subprocess.Popen:
+        """``capture``: stdout is a text pipe (for a child that prints a JSON result); ``checkout``:
+        run in another checkout of zenrl with its ``.venv`` (default: this one, this interpreter),
+        for an A/B of its code against this one's."""
+        python = sys.executable if checkout is None else str(checkout / ".venv" / "bin" / "python")
         with open(self.tmp / f"{name}.log", "ab") as logf:
             env = dict(os.environ, ZENRL_PARENT_PID=str(os.getpid()), BENCH_PARENT_PID=str(os.getpid()))
-            p = subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env, stderr=logf,
+            p = subprocess.Popen([python, *argv], cwd=checkout or ROOT, env=env, stderr=logf,
                                  stdout=subprocess.PIPE if capture else logf, text=capture or None)
         self.procs.append(p)
         return p

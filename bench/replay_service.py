@@ -1,11 +1,13 @@
-"""Replay service throughput over Zenoh (issue 2): a real ``zenrl replay`` process vs raw Zenoh.
+"""Replay service throughput over Zenoh (issues 2, 37): a real ``zenrl replay`` process vs raw Zenoh.
 
 Measures, in one run, on loopback through an in-process Zenoh router (every other party is a
-separate OS process, all Zenoh clients of that router):
+separate OS process, all Zenoh clients of that router, all with the transport settings a zenrl
+role gets from its config: shared memory off unless ``--shm``, the replay's receive cap on the
+receivers):
 
   * ``ingest`` - transitions/s inserted by a ``zenrl replay`` process fed by 2 publisher
-    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of actor.chunk_size (default 256) transitions with
-    priorities), measured at the receiver from the service's own stats
+    processes (``ZenohReplayClient.insert``: CartPole-sized chunks of actor.chunk_size (default
+    256) transitions with priorities), measured at the receiver from the service's own stats
     (``inserted_total`` with ``replay.stats_interval_s`` = 0.05 s);
   * ``raw`` - the same byte stream (the same encoded ``transitions`` messages, put with the
     same BLOCK publisher settings) from 2 publisher processes to a raw Zenoh subscriber process
@@ -13,21 +15,35 @@ separate OS process, all Zenoh clients of that router):
     (first to last receipt);
   * ``store_only`` (``--images``) - the ceiling of any receiver that keeps what it gets: the
     same publishers as ``ingest`` (``ZenohReplayClient``) to a subscriber process that takes the
-    bytes and copies them into a ring of the replay's frame bytes, nothing else;
+    bytes and copies them into a pre-touched ring of the replay's frame bytes, nothing else;
+    ``service_fraction_of_store_only`` = median service rate / median store-only rate (target
+    >= 0.8), with a learner-like sampler (batch 128, 4 requests in flight, ``SamplePrefetcher``
+    over the replay's queryable; ``--sample-rate`` caps it, ``--no-sampler`` leaves it out)
+    running through every service round;
+  * ``threads`` - per thread of the receiving process (the replay, the store-only receiver), over
+    each round: CPU, wake-ups, preemptions and minor page faults per chunk (``/proc``; zenrl's
+    threads are named, Zenoh's runtime names its own: ``rx-0``, ``tx-0``, ...);
   * ``checks`` - CPU time per chunk of the service's ingest path (decode, validate, insert) with
     ``replay.check_semantics`` on and off, in process: ``checks_overhead_ratio`` (target <= 1.05);
   * ``sample`` - batches/s of 512 served by the replay to one client process keeping 4 requests
-    in flight (``SamplePrefetcher``), after the ingest rounds filled it.
+    in flight (``SamplePrefetcher``), after the ingest rounds filled it (CartPole mode).
 
-Raw and service rounds alternate (raw, service, raw, service, ...) and the medians are
-compared: ``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
+Rounds alternate (raw, [store-only,] service, ...) and medians are compared:
+``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
+``--baseline DIR`` adds, in the same rounds, service rounds on the replay of another zenrl
+checkout (run with DIR/.venv): ``service_vs_baseline`` is an A/B of the replay's code on the same
+machine, publishers and router.
 
 Progress goes to stderr; the last stdout line is one JSON object.
 
     python bench/replay_service.py            # full run (~1.5-2 min)
     python bench/replay_service.py --quick    # one short round each (~30 s)
-    python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks
+    python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks (~5 min)
+    python bench/replay_service.py --images --baseline ../main   # ... and main's replay, same rounds
     python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
+
+For diagnosis: ``--kinds``, ``--rounds``, ``--service-only``, ``--service-set KEY=VALUE`` (an
+option for this checkout's replay only), ``--codec lz4``, ``--shm``.
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
 ``--role sampler``.
@@ -71,6 +87,10 @@ def chunk_items(kind: str) -> int:
     return CHUNK if kind == "cartpole" else IMAGE_CHUNK
 SAMPLE_BATCH = 512
 IN_FLIGHT = 4
+#: --images: the sampler that runs through the service rounds samples as the Ape-X learner does
+#: at its defaults (learner.batch_size, learner.requests_in_flight)
+LEARNER_BATCH = 128
+LEARNER_IN_FLIGHT = 4
 N_PUBLISHERS = 2
 
 
@@ -93,6 +113,71 @@ def watch_parent(stop: threading.Event) -> None:
                 os._exit(3)
 
     threading.Thread(target=loop, daemon=True).start()
+
+
+def bench_node(router: str, shm: bool, receiver: bool = False) -> Any:
+    """A node with the transport settings a zenrl role gets from its config: shared memory as
+    ``--shm`` says (off, the zenrl default, unless given), and for a receiver of chunks the
+    replay's receive cap. Every party of a round (publishers, receivers, the replay, the sampler)
+    uses the same settings, so that a rate compared with another was carried the same way."""
+    from zenrl.common.config import load_config
+    from zenrl.common.transport import Node
+    from zenrl.replay.service import rx_cap
+
+    cfg = load_config(None, [f"transport.router={router}", f"transport.shared_memory={str(shm).lower()}",
+                             "transport.connect_timeout_s=20"])
+    return Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg) if receiver else None)
+
+
+def task_cpu(pid: int | str = "self") -> dict[int, tuple[str, float, int, int, int]]:
+    """Per thread of process ``pid``: ``(name, CPU seconds, voluntary, involuntary context
+    switches, minor page faults)`` from ``/proc`` (Linux; empty elsewhere). A voluntary switch is
+    a wait: a wake-up; a minor fault is mostly a first touch of fresh memory."""
+    out: dict[int, tuple[str, float, int, int, int]] = {}
+    base = f"/proc/{pid}/task"
+    try:
+        tids = os.listdir(base)
+    except OSError:
+        return out
+    tick = os.sysconf("SC_CLK_TCK")
+    for tid in tids:
+        try:
+            with open(f"{base}/{tid}/stat") as f:
+                st = f.read()
+            with open(f"{base}/{tid}/status") as f:
+                status = dict(line.split(":", 1) for line in f.read().splitlines() if ":" in line)
+        except OSError:
+            continue  # ended meanwhile
+        rest = st[st.rindex(")") + 2:].split()  # fields 3.. of proc(5); minflt is 10, utime, stime 14, 15
+        out[int(tid)] = (st[st.index("(") + 1:st.rindex(")")], (int(rest[11]) + int(rest[12])) / tick,
+                         int(status.get("voluntary_ctxt_switches", 0)), int(status.get("nonvoluntary_ctxt_switches", 0)),
+                         int(rest[7]))
+    return out
+
+
+def thread_breakdown(before: dict[int, tuple[str, float, int, int, int]],
+                     after: dict[int, tuple[str, float, int, int, int]], chunks: int, span_s: float) -> dict[str, Any]:
+    """CPU and wake-ups of a process's threads between two :func:`task_cpu` snapshots, grouped
+    by thread name (Zenoh's runtime names its threads, e.g. ``rx-0``; zenrl names its watched
+    threads): per group ``cores`` (CPU s / ``span_s``), ``us_per_chunk``, ``wakeups_per_chunk``,
+    ``preempted_per_chunk`` and ``faults_per_chunk`` (minor page faults)."""
+    groups: dict[str, list[float]] = {}
+    for tid, (name, cpu, vol, invol, flt) in after.items():
+        _, cpu0, vol0, invol0, flt0 = before.get(tid, (name, 0.0, 0, 0, 0))
+        g = groups.setdefault(name, [0.0, 0, 0, 0, 0])
+        g[0] += cpu - cpu0
+        g[1] += vol - vol0
+        g[2] += invol - invol0
+        g[3] += flt - flt0
+        g[4] += 1
+    n = max(chunks, 1)
+    out = {name: {"cores": round(c / span_s, 3) if span_s > 0 else None, "us_per_chunk": round(c / n * 1e6, 1),
+                  "wakeups_per_chunk": round(v / n, 2), "preempted_per_chunk": round(iv / n, 2),
+                  "faults_per_chunk": round(f / n, 1), "threads": int(k)}
+           for name, (c, v, iv, f, k) in sorted(groups.items(), key=lambda kv: -kv[1][0]) if c > 0 or v > 0}
+    total = sum(g[0] for g in groups.values())
+    return {"chunks": chunks, "span_s": round(span_s, 2), "cores": round(total / span_s, 3) if span_s > 0 else None,
+            "us_per_chunk": round(total / n * 1e6, 1), "by_thread": out}
 
 
 def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray], np.ndarray]]:
@@ -158,14 +243,14 @@ def shifted(batch: dict[str, np.ndarray], frames: Any, base: int) -> dict[str, n
     return {k: (v + base if k in ("obs", "next_obs") else v) for k, v in batch.items()}
 
 
-def encoded_pool(seed: int, count: int, actor_id: str, kind: str = "cartpole") -> list[bytes]:
+def encoded_pool(seed: int, count: int, actor_id: str, kind: str = "cartpole", codec: str | None = None) -> list[bytes]:
     from zenrl.common import protocol as P
 
     out = []
     base = 0
     for i, (b, p, f) in enumerate(kind_batches(kind, seed, count)):
         out.append(P.TransitionBatch(actor_id=actor_id, policy_version=0, seq=i, data=shifted(b, f, base), priorities=p,
-                                     frames=f, frame_base=None if f is None else base).encode())
+                                     frames=f, frame_base=None if f is None else base).encode(codec=codec))
         base += 0 if f is None else len(f["obs"])
     return out
 
@@ -190,7 +275,6 @@ def role_pub(args: argparse.Namespace) -> int:
     ``transitions`` messages, ``--mode client`` inserts the same batches with ZenohReplayClient."""
     from zenrl.common import protocol as P
     from zenrl.common.replay_client import ZenohReplayClient
-    from zenrl.common.transport import Node
 
     stop = threading.Event()
     watch_parent(stop)
@@ -198,10 +282,10 @@ def role_pub(args: argparse.Namespace) -> int:
     pool_n = 64 if args.kind == "cartpole" else 16
     sent_warm = 0
     base = 0  # frame mode: the next chunk's frame_base
-    with Node(args.router, 20.0) as node:
+    with bench_node(args.router, args.shm) as node:
         deadline = time.monotonic() + 30
         if args.mode == "raw":
-            payloads = encoded_pool(args.seed, pool_n, args.id, args.kind)
+            payloads = encoded_pool(args.seed, pool_n, args.id, args.kind, args.codec)
             pub = node.publisher(keys.transitions(args.id))
             while not pub.matching_status.matching:  # the raw subscriber is there
                 if time.monotonic() > deadline or stop.is_set():
@@ -209,7 +293,7 @@ def role_pub(args: argparse.Namespace) -> int:
                 time.sleep(0.05)
         else:
             batches = kind_batches(args.kind, args.seed, pool_n)
-            client = ZenohReplayClient(node, keys, args.id)
+            client = ZenohReplayClient(node, keys, args.id, codec=args.codec)
             while not node.alive_now(keys.alive_role("replay"), 1.0):
                 if time.monotonic() > deadline or stop.is_set():
                     return 3
@@ -266,9 +350,11 @@ def role_rawsub(args: argparse.Namespace) -> int:
     """Count messages on ``transitions/*``; print counts and first/last receipt times after the
     stream has been idle for ``--idle`` s (or on SIGTERM). ``--store-mb`` > 0: also stand in for
     the replay (its liveliness token, for client-mode publishers) and copy each payload into a
-    ring of that size (pre-touched)."""
+    ring of that size (pre-touched). Its session has the replay's transport settings
+    (:func:`bench_node`); it reports its threads' CPU and wake-ups from the go signal to the
+    last receipt (:func:`thread_breakdown`)."""
     from zenrl.common import protocol as P
-    from zenrl.common.transport import open_session
+    from zenrl.common.roles import name_os_thread
 
     stop = threading.Event()
     watch_parent(stop)
@@ -279,7 +365,12 @@ def role_rawsub(args: argparse.Namespace) -> int:
     if args.store_mb > 0:
         store = np.ones(int(args.store_mb * 1e6), np.uint8)  # touched: no first-touch faults while measured
 
+    named = threading.local()
+
     def cb(sample: Any) -> None:
+        if not getattr(named, "done", False):  # Zenoh's callback thread, told apart in the breakdown
+            name_os_thread("zenoh-callback")
+            named.done = True
         data = sample.payload.to_bytes()
         if store is not None:
             a = np.frombuffer(data, np.uint8)
@@ -294,13 +385,16 @@ def role_rawsub(args: argparse.Namespace) -> int:
             st["n"] += 1
             st["bytes"] += len(data)
 
-    session = open_session(args.router, 20.0)
+    node = bench_node(args.router, args.shm, receiver=True)
+    session = node.session
+    cpu_at_go: list[Any] = []
     try:
         sub = session.declare_subscriber(keys.transitions_all, cb)
         expect: list[int] = []
         def on_go(_s: Any) -> None:  # a client-mode publisher's warm-up chunk came before: not counted
             with lock:
                 st.update(n=0, bytes=0, first=None, last=None)
+            cpu_at_go[:] = [task_cpu()]
 
         go_sub = session.declare_subscriber(f"{keys.prefix}/bench/go", on_go)
         exp_sub = session.declare_subscriber(f"{keys.prefix}/bench/expect",
@@ -317,6 +411,7 @@ def role_rawsub(args: argparse.Namespace) -> int:
                 break  # some never came
             if time.monotonic() > deadline:
                 break
+        cpu_end = task_cpu()
         exp_sub.undeclare()
         go_sub.undeclare()
         token.undeclare()
@@ -324,27 +419,31 @@ def role_rawsub(args: argparse.Namespace) -> int:
             token2.undeclare()
         sub.undeclare()
     finally:
-        session.close()
+        node.close()
     n = st["n"]
     span = (st["last"] - st["first"]) if n > 1 else 0.0
+    threads = thread_breakdown(cpu_at_go[0], cpu_end, n, span) if cpu_at_go and n else None
     print(json.dumps({"messages": n, "expected": expect[-1] if expect else None, "bytes": st["bytes"], "span_s": span,
                       "items_per_s": (n - 1) * chunk_items(args.kind) / span if span > 0 else None,
-                      "mb_per_s": st["bytes"] / span / 1e6 if span > 0 else None}), flush=True)
+                      "mb_per_s": st["bytes"] / span / 1e6 if span > 0 else None, "threads": threads}), flush=True)
     return 0
 
 
 def role_sampler(args: argparse.Namespace) -> int:
-    """Sample batches of 512 with 4 requests in flight for ``--duration`` s after a warm-up."""
+    """Sample batches of ``--batch`` with ``--in-flight`` requests outstanding, as the Ape-X
+    learner does (:class:`SamplePrefetcher` over the replay's Zenoh queryable), for
+    ``--duration`` s after a warm-up (or until SIGTERM); ``--rate`` > 0 takes at most that many
+    batches a second, as a learner whose updates take 1/rate s would."""
     from zenrl.common import protocol as P
     from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
-    from zenrl.common.transport import Node
 
     stop = threading.Event()
     watch_parent(stop)
     keys = P.Keys(args.run)
-    with Node(args.router, 20.0) as node:
+    with bench_node(args.router, args.shm) as node:
         client = ZenohReplayClient(node, keys, "bench-sampler", timeout_s=5.0)
-        pf = SamplePrefetcher(client, SAMPLE_BATCH, lambda: 0.4, IN_FLIGHT).start()
+        pf = SamplePrefetcher(client, args.batch, lambda: 0.4, args.in_flight).start()
+        node.token(keys.alive("benchsampler", "sampler"))
         try:
             warm_end = time.perf_counter() + args.warmup
             while time.perf_counter() < warm_end and not stop.is_set():
@@ -357,6 +456,8 @@ def role_sampler(args: argparse.Namespace) -> int:
                 if s is not None:
                     n += 1
                     items += len(s.keys)
+                    if args.rate > 0:  # the learner's update time
+                        stop.wait(max(0.0, t0 + n / args.rate - time.perf_counter()))
             el = time.perf_counter() - t0
         finally:
             pf.stop()
@@ -437,13 +538,15 @@ def go(node: Any, keys: Any, n: int) -> float:
     return t
 
 
-def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float, kind: str = "cartpole") -> list[str]:
+def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: float, kind: str = "cartpole",
+             shm: bool = False, codec: str | None = None) -> list[str]:
     return [str(Path(__file__).resolve()), "--role", "pub", "--mode", role_mode, "--router", ep, "--run", run,
-            "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind]
+            "--id", pid, "--seed", str(seed), "--duration", str(duration), "--kind", kind, *(["--shm"] if shm else []),
+            *(["--codec", codec] if codec else [])]
 
 
 def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole",
-              store_mb: float = 0.0, pub_mode: str = "raw") -> dict[str, Any]:
+              store_mb: float = 0.0, pub_mode: str = "raw", shm: bool = False, codec: str | None = None) -> dict[str, Any]:
     from zenrl.common import protocol as P
 
     rrun = f"{run}-raw{r}"
@@ -451,10 +554,10 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     sent_watch = SentWatch(node, keys.prefix)
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
                                      "--idle", "5", "--max-s", str(duration + 120), "--kind", kind,
-                                     "--store-mb", str(store_mb)], capture=True)
+                                     "--store-mb", str(store_mb), *(["--shm"] if shm else [])], capture=True)
     wait_until(lambda: node.alive_now(keys.alive_role("rawsub"), 1.0), 60, "raw subscriber")
-    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv(pub_mode, ep, rrun, f"pub{k}", 100 + k, duration, kind), capture=True)
-            for k in range(N_PUBLISHERS)]
+    pubs = [procs.start(f"rawpub{r}-{k}", pub_argv(pub_mode, ep, rrun, f"pub{k}", 100 + k, duration, kind, shm, codec),
+                        capture=True) for k in range(N_PUBLISHERS)]
     go(node, keys, N_PUBLISHERS)
     # what is sent after the go signal: a client-mode publisher's warm-up chunk is not counted
     sent = sum(x["loop_chunks"] for x in sent_watch.wait(N_PUBLISHERS, duration + 60))
@@ -464,7 +567,7 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     pres = [communicate(procs, f"rawpub{r}-{k}", p, 30) for k, p in enumerate(pubs)]
     return {"items_per_s": sres["items_per_s"], "mb_per_s": sres["mb_per_s"], "received_chunks": sres["messages"],
             "sent_chunks": sent, "span_s": sres["span_s"],
-            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres)}
+            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres), "threads": sres.get("threads")}
 
 
 def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final: int) -> tuple[float | None, float]:
@@ -488,21 +591,39 @@ def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final
     return ((pts[end][1] - pts[start][1]) / dt if dt > 0 else None), dt
 
 
+def sampler_argv(ep: str, run: str, shm: bool, rate: float, duration: float = 3600.0) -> list[str]:
+    """The learner-like sampler (--role sampler) at LEARNER_BATCH, LEARNER_IN_FLIGHT."""
+    return [str(Path(__file__).resolve()), "--role", "sampler", "--router", ep, "--run", run, "--duration",
+            str(duration), "--warmup", "0", "--batch", str(LEARNER_BATCH), "--in-flight", str(LEARNER_IN_FLIGHT),
+            "--rate", str(rate), *(["--shm"] if shm else [])]
+
+
 def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str, r: int,
-                  duration: float, kind: str = "cartpole") -> dict[str, Any]:
+                  duration: float, kind: str = "cartpole", shm: bool = False, replay_pid: int | None = None,
+                  sample_rate: float | None = None, tag: str = "", codec: str | None = None) -> dict[str, Any]:
+    """One round of ``duration`` s of 2 client publishers into the replay of ``run``, the rate
+    measured from its stats. ``replay_pid``: also its threads' CPU and wake-ups over the round.
+    ``sample_rate`` (not None): a learner-like sampler runs through the round (0: as fast as the
+    replay serves it; > 0: at most that many batches a second)."""
     from zenrl.common import protocol as P
 
     keys = P.Keys(run)
     sent_watch = SentWatch(node, keys.prefix)
-    pubs = [procs.start(f"svcpub{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration, kind), capture=True)
-            for k in range(N_PUBLISHERS)]
+    sampler = None
+    if sample_rate is not None:
+        sampler = procs.start(f"sampler{tag}{r}", sampler_argv(ep, run, shm, sample_rate), capture=True)
+        wait_until(lambda: node.alive_now(keys.alive_role("benchsampler"), 1.0), 60, "sampler")
+    pubs = [procs.start(f"svcpub{tag}{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration, kind, shm, codec),
+                        capture=True) for k in range(N_PUBLISHERS)]
     # the publishers' warm-up chunks must be in before the clock starts
     wait_until(lambda: len(node.alive_now(keys.alive_role("benchpub"), 1.0)) >= N_PUBLISHERS, 60, "publishers ready")
     base_total = stats.latest("inserted_total")
     wait_until(lambda: stats.latest("inserted_total") >= base_total and stats.latest("ingest_queue", 1) == 0, 10,
                "replay idle")
     time.sleep(0.2)
+    samples0 = stats.latest("sample_batches_total")
     t_go = go(node, keys, N_PUBLISHERS)
+    cpu0 = task_cpu(replay_pid) if replay_pid else {}
     pres = sent_watch.wait(N_PUBLISHERS, duration + 60)
     pre_go = [v for t, v in stats.snapshot() if t <= t_go]
     expected = (pre_go[-1]["inserted_total"] if pre_go else 0) + sum(x["loop_chunks"] for x in pres) * chunk_items(kind)
@@ -518,18 +639,31 @@ def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str,
         return time.monotonic() - last[1] > 5.0
 
     wait_until(settled, 120, "replay to ingest the stream")
+    t_end = time.time()
+    cpu1 = task_cpu(replay_pid) if replay_pid else {}
+    samples1 = stats.latest("sample_batches_total")
     time.sleep(0.1)
     node.put(f"{keys.prefix}/bench/release", b"1")
     for k, p in enumerate(pubs):
-        communicate(procs, f"svcpub{r}-{k}", p, 30)
+        communicate(procs, f"svcpub{tag}{r}-{k}", p, 30)
+    smp = None
+    if sampler is not None:
+        procs.stop(sampler)
+        smp = communicate(procs, f"sampler{tag}{r}", sampler, 30)
     final = stats.latest("inserted_total")
     rate, dt = service_rate(stats.snapshot(), t_go, final)
     sent = sum(x["loop_chunks"] for x in pres) * chunk_items(kind)
     ingested = final - (pre_go[-1]["inserted_total"] if pre_go else 0)
-    return {"items_per_s": rate, "window_s": dt, "sent_items": sent, "ingested_items": ingested,
-            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres),
-            "dropped_queue_full": stats.latest("dropped_queue_full"),
-            "undelivered_chunks": sum(x.get("undelivered", 0) for x in pres)}
+    out = {"items_per_s": rate, "window_s": dt, "sent_items": sent, "ingested_items": ingested,
+           "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres),
+           "dropped_queue_full": stats.latest("dropped_queue_full"),
+           "undelivered_chunks": sum(x.get("undelivered", 0) for x in pres)}
+    if replay_pid:
+        out["threads"] = thread_breakdown(cpu0, cpu1, ingested // chunk_items(kind), t_end - t_go)
+    if sampler is not None:
+        out["sample_batches_per_s"] = round((samples1 - samples0) / max(t_end - t_go, 1e-9), 1)
+        out["sampler"] = smp
+    return out
 
 
 def inprocess_ingest(duration_s: float) -> dict[str, Any]:
@@ -552,7 +686,7 @@ def inprocess_ingest(duration_s: float) -> dict[str, Any]:
     return {"items_per_s": items / el, "items_per_cpu_s": items / cpu, "us_per_chunk_cpu": cpu / i * 1e6}
 
 
-def inprocess_image_ingest(kind: str, duration_s: float) -> dict[str, Any]:
+def inprocess_image_ingest(kind: str, duration_s: float, codec: str | None = None) -> dict[str, Any]:
     """Reference for --images: the service's ingest of ``kind`` frame-mode chunks in this process,
     no network, in batches of ``replay.ingest_batch_chunks`` as the ingest thread takes them from
     a busy queue (decode, insert into a warm ring): the replay's own ceiling on one core."""
@@ -562,7 +696,7 @@ def inprocess_image_ingest(kind: str, duration_s: float) -> dict[str, Any]:
     cfg = load_config(None, [f"replay.capacity={IMAGE_CAPACITY}", "replay.check_semantics=false"])
     svc = ReplayService(cfg, None, "benchref")
     per = cfg.replay.ingest_batch_chunks
-    pool = encoded_pool(100, 4 * per, "pub0", kind)
+    pool = encoded_pool(100, 4 * per, "pub0", kind, codec)
     for _ in range(2):  # every ring page touched before the clock starts
         for j in range(0, len(pool), per):
             svc.ingest_many([(p, "pub0") for p in pool[j:j + per]])
@@ -625,8 +759,6 @@ def orchestrate(args: argparse.Namespace) -> int:
     rounds, duration, sample_s = (1, 2.0, 3.0) if args.quick else (3, 6.0, 8.0)
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    run = f"bench{uuid.uuid4().hex[:8]}"
-    keys = P.Keys(run)
     tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-replay-"))
     router = open_router([ep])
     procs = Procs(tmp)
@@ -634,34 +766,41 @@ def orchestrate(args: argparse.Namespace) -> int:
     out: dict[str, Any] = {"bench": "replay_service", "quick": bool(args.quick), "error": None}
     try:
         node = Node(ep, 10.0)
-        stats = StatsWatch(node, keys)
-        log(f"router {ep}, run {run}, logs in {tmp}")
+        log(f"router {ep}, logs in {tmp}, shared memory {'on' if args.shm else 'off'}")
         chk = checks_overhead(2 if args.quick else 6, 1.0)
         log(f"semantic checks: ingest CPU per chunk ratio on/off {chk['checks_overhead_ratio']}")
         ref = inprocess_ingest(1.0 if args.quick else 3.0)
         log(f"reference: ReplayService.ingest in process: {ref['items_per_s']:,.0f} items/s")
-        procs.start("replay", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
-                               "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
-                               "--set", "replay.capacity=100000", "--log-level", "INFO"])
-        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
-        raw, svc = [], []
+        replays = start_replays(procs, node, ep, args, "cartpole", 100000)
+        run, _, stats = replays["service"]
+        raw: list[dict[str, Any]] = []
+        svcs: dict[str, list[dict[str, Any]]] = {v: [] for v in replays}
         for r in range(rounds):
-            res = raw_round(procs, node, ep, run, r, duration)
+            res = raw_round(procs, node, ep, run, r, duration, shm=args.shm)
             log(f"round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
                 f"{res['received_chunks']}/{res['sent_chunks']} chunks")
             raw.append(res)
-            res = service_round(procs, node, stats, ep, run, r, duration)
-            log(f"round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
-                f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
-            svc.append(res)
+            for variant in (list(replays) if r % 2 == 0 else list(replays)[::-1]):
+                vrun, p, vstats = replays[variant]
+                res = service_round(procs, node, vstats, ep, vrun, r, duration, shm=args.shm, replay_pid=p.pid, tag=variant)
+                log(f"round {r} replay {variant}: {res['items_per_s'] or 0:,.0f} items/s, {res['ingested_items']}/"
+                    f"{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}, "
+                    f"{res['threads']['us_per_chunk']} us CPU per chunk")
+                svcs[variant].append(res)
+        svc = svcs["service"]
         sampler = procs.start("sampler", [str(Path(__file__).resolve()), "--role", "sampler", "--router", ep,
-                                          "--run", run, "--duration", str(sample_s), "--warmup", "1.0"], capture=True)
+                                          "--run", run, "--duration", str(sample_s), "--warmup", "1.0",
+                                          *(["--shm"] if args.shm else [])], capture=True)
         smp = communicate(procs, "sampler", sampler, sample_s + 60)
         log(f"sampling: {smp['batches_per_s']:.1f} batches/s of {SAMPLE_BATCH}")
         raw_med = statistics.median(x["items_per_s"] for x in raw)
-        svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
-        svc_med = statistics.median(svc_rates) if svc_rates else None
+        svc_med = median_of(svc)
         ratio = svc_med / raw_med if svc_med and raw_med else None
+        if "baseline" in svcs:
+            base_med = median_of(svcs["baseline"])
+            out.update({"baseline_service_ingest_items_per_s": None if base_med is None else round(base_med),
+                        "baseline_service_us_per_chunk_cpu": median_of([x["threads"] for x in svcs["baseline"]], "us_per_chunk"),
+                        "service_vs_baseline": round(svc_med / base_med, 3) if svc_med and base_med else None})
         out.update({
             "bench": "replay_service",
             "quick": bool(args.quick),
@@ -681,7 +820,9 @@ def orchestrate(args: argparse.Namespace) -> int:
             "publishers": N_PUBLISHERS,
             "chunk_items": CHUNK,
             "chunk_bytes": len(encoded_pool(0, 1, "pub0")[0]),
-            "rounds": {"raw": raw, "service": svc},
+            "service_us_per_chunk_cpu": median_of([x["threads"] for x in svc], "us_per_chunk"),
+            "shared_memory": bool(args.shm),
+            "rounds": {"raw": raw, **svcs},
             "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
             "notes": ("rates measured at the receiver; raw = same encoded messages, same BLOCK publishers, "
                       "a subscriber process that only copies the payload out and counts; medians of "
@@ -696,15 +837,62 @@ def orchestrate(args: argparse.Namespace) -> int:
     return emit(out)
 
 
-def orchestrate_images(args: argparse.Namespace) -> int:
-    """Image mode: per kind, a fresh replay process and alternating raw / service rounds on the
-    same frame-mode chunks (each chunk carries all IMAGE_CHUNK + n (+ stack) frames it names)."""
+def replay_argv(ep: str, run: str, capacity: int, shm: bool, *extra: str) -> list[str]:
+    """A ``zenrl replay`` process for the benchmark (stats every 50 ms, ``transport.shared_memory``
+    as ``--shm``); ``extra``: more ``--set`` options."""
+    argv = ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run, "--log-level", "INFO"]
+    for kv in ("replay.stats_interval_s=0.05", "replay.min_size=1000", f"replay.capacity={capacity}",
+               f"transport.shared_memory={str(shm).lower()}", *extra):
+        argv += ["--set", kv]
+    return argv
+
+
+def variants(args: argparse.Namespace) -> dict[str, Path | None]:
+    """The replays measured: this checkout's (``service``), and with ``--baseline DIR`` also the
+    one of checkout DIR (run with DIR/.venv; ``baseline``)."""
+    out: dict[str, Path | None] = {"service": None}
+    if args.baseline:
+        root = Path(args.baseline).resolve()
+        if not (root / ".venv" / "bin" / "python").exists():
+            raise RuntimeError(f"--baseline {root}: no .venv/bin/python there")
+        out["baseline"] = root
+    return out
+
+
+def start_replays(procs: Procs, node: Any, ep: str, args: argparse.Namespace, name: str, capacity: int,
+                  *extra: str) -> dict[str, tuple[str, Any, "StatsWatch"]]:
+    """One replay process per variant: ``{variant: (run id, process, stats)}``."""
     from zenrl.common import protocol as P
+
+    out = {}
+    for variant, checkout in variants(args).items():
+        run = f"bench{uuid.uuid4().hex[:8]}"
+        keys = P.Keys(run)
+        stats = StatsWatch(node, keys)
+        mine = args.service_set if variant == "service" else []
+        p = procs.start(f"replay-{name}-{variant}", replay_argv(ep, run, capacity, args.shm, *extra, *mine),
+                        checkout=checkout)
+        wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, f"replay service ({variant})")
+        out[variant] = (run, p, stats)
+    return out
+
+
+def median_of(rounds: list[dict[str, Any]], key: str = "items_per_s") -> float | None:
+    vals = [x[key] for x in rounds if x.get(key)]
+    return statistics.median(vals) if vals else None
+
+
+def orchestrate_images(args: argparse.Namespace) -> int:
+    """Image mode: per kind, fresh replay processes and alternating raw / store-only / service
+    rounds on the same frame-mode chunks (each chunk carries all IMAGE_CHUNK + n (+ stack)
+    frames it names), a learner-like sampler running through every service round."""
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
 
     t_start = time.perf_counter()
     rounds, duration = (1, 2.0) if args.quick else (3, 5.0)
+    rounds = args.rounds or rounds
+    sample_rate = None if args.no_sampler else args.sample_rate
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     tmp = Path(tempfile.mkdtemp(prefix="zenrl-bench-replay-img-"))
@@ -714,72 +902,100 @@ def orchestrate_images(args: argparse.Namespace) -> int:
     out: dict[str, Any] = {"bench": "replay_service", "mode": "images", "quick": bool(args.quick), "error": None}
     try:
         node = Node(ep, 10.0)
-        log(f"router {ep}, logs in {tmp}")
+        log(f"router {ep}, logs in {tmp}, shared memory {'on' if args.shm else 'off'}, codec {args.codec}, "
+            f"sampler {'off' if sample_rate is None else (f'{sample_rate:g}/s' if sample_rate else 'unthrottled')}")
         kinds: dict[str, Any] = {}
-        for kind in IMAGE_KINDS:
-            run = f"bench{uuid.uuid4().hex[:8]}"
-            keys = P.Keys(run)
-            stats = StatsWatch(node, keys)
-            replay = procs.start(f"replay-{kind}", ["-m", "zenrl.cli", "replay", "--router", ep, "--run-id", run,
-                                                    "--set", "replay.stats_interval_s=0.05", "--set", "replay.min_size=1000",
-                                                    "--set", f"replay.capacity={IMAGE_CAPACITY}", "--log-level", "INFO",
-                                                    # synthetic chunks of no registered env (6 actions, bare
-                                                    # frames): the env checks' cost is --checks-only's
-                                                    "--set", "replay.check_semantics=false"])
-            wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
-            raw, store, svc = [], [], []
+        for kind in args.kinds:
+            # synthetic chunks of no registered env (6 actions, bare frames): the env checks' cost
+            # is --checks-only's
+            replays = start_replays(procs, node, ep, args, kind, IMAGE_CAPACITY, "replay.check_semantics=false")
+            raw: list[dict[str, Any]] = []
+            store: list[dict[str, Any]] = []
+            svc: dict[str, list[dict[str, Any]]] = {v: [] for v in replays}
             frames_mb = ring_mb(kind)
             for r in range(rounds):
-                res = raw_round(procs, node, ep, run, r, duration, kind)
-                log(f"[{kind}] round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
-                    f"{res['received_chunks']}/{res['sent_chunks']} chunks")
-                raw.append(res)
-                res = raw_round(procs, node, ep, f"{run}s", r, duration, kind, store_mb=frames_mb, pub_mode="client")
-                log(f"[{kind}] round {r} store-only receiver: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
-                    f"{res['received_chunks']}/{res['sent_chunks']} chunks")
-                store.append(res)
-                res = service_round(procs, node, stats, ep, run, r, duration, kind)
-                log(f"[{kind}] round {r} replay service: {res['items_per_s'] or 0:,.0f} items/s, "
-                    f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}")
-                svc.append(res)
-            procs.stop(replay)
-            ref = inprocess_image_ingest(kind, 1.0 if args.quick else 3.0)
+                if not args.service_only:
+                    res = raw_round(procs, node, ep, next(iter(replays.values()))[0], r, duration, kind, shm=args.shm,
+                                    codec=args.codec)
+                    log(f"[{kind}] round {r} raw zenoh: {res['items_per_s']:,.0f} items/s ({res['mb_per_s']:.1f} MB/s), "
+                        f"{res['received_chunks']}/{res['sent_chunks']} chunks")
+                    raw.append(res)
+                    res = raw_round(procs, node, ep, f"{next(iter(replays.values()))[0]}s", r, duration, kind,
+                                    store_mb=frames_mb, pub_mode="client", shm=args.shm, codec=args.codec)
+                    log(f"[{kind}] round {r} store-only receiver: {res['items_per_s']:,.0f} items/s "
+                        f"({res['mb_per_s']:.1f} MB/s), {res['received_chunks']}/{res['sent_chunks']} chunks, "
+                        f"{res['threads'] and res['threads']['us_per_chunk']} us CPU per chunk")
+                    store.append(res)
+                order = list(replays) if r % 2 == 0 else list(replays)[::-1]
+                for variant in order:
+                    run, p, stats = replays[variant]
+                    res = service_round(procs, node, stats, ep, run, r, duration, kind, shm=args.shm, replay_pid=p.pid,
+                                        sample_rate=sample_rate, tag=variant, codec=args.codec)
+                    log(f"[{kind}] round {r} replay {variant}: {res['items_per_s'] or 0:,.0f} items/s, "
+                        f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}, "
+                        f"{res['threads']['us_per_chunk']} us CPU per chunk, "
+                        f"sampling {res.get('sample_batches_per_s')} batches/s")
+                    svc[variant].append(res)
+            for _, p, _ in replays.values():
+                procs.stop(p)
+            if args.service_only:
+                kinds[kind] = {"rounds": svc}
+                continue
+            ref = inprocess_image_ingest(kind, 1.0 if args.quick else 3.0, args.codec)
             log(f"[{kind}] reference: the service's ingest in process: {ref['items_per_s']:,.0f} items/s "
                 f"({ref['us_per_chunk_cpu']:.0f} us CPU per chunk)")
             raw_med = statistics.median(x["items_per_s"] for x in raw)
             store_med = statistics.median(x["items_per_s"] for x in store)
-            svc_rates = [x["items_per_s"] for x in svc if x["items_per_s"]]
-            svc_med = statistics.median(svc_rates) if svc_rates else None
-            chunk_bytes = len(encoded_pool(0, 1, "pub0", kind)[0])
-            kinds[kind] = {
-                "ingest_ratio_vs_raw_zenoh": None if not svc_med else round(svc_med / raw_med, 3),
-                "service_ingest_items_per_s": None if svc_med is None else round(svc_med),
+            chunk_bytes = len(encoded_pool(0, 1, "pub0", kind, args.codec)[0])
+            k: dict[str, Any] = {
                 "raw_zenoh_items_per_s": round(raw_med),
-                # the ceiling of any receiver that keeps what it gets, on this machine
-                "store_only_ratio_vs_raw_zenoh": round(store_med / raw_med, 3),
+                # the ceiling of any receiver that keeps what it gets, on this machine, same transport
                 "store_only_items_per_s": round(store_med),
-                "service_fraction_of_store_only": None if not svc_med else round(svc_med / store_med, 3),
+                "store_only_ratio_vs_raw_zenoh": round(store_med / raw_med, 3),
+            }
+            for variant, rs in svc.items():
+                med = median_of(rs)
+                pre = "" if variant == "service" else f"{variant}_"
+                k.update({
+                    f"{pre}service_ingest_items_per_s": None if med is None else round(med),
+                    f"{pre}service_fraction_of_store_only": None if not med else round(med / store_med, 3),
+                    f"{pre}ingest_ratio_vs_raw_zenoh": None if not med else round(med / raw_med, 3),
+                    f"{pre}sample_batches_per_s": median_of(rs, "sample_batches_per_s"),
+                    f"{pre}service_us_per_chunk_cpu": median_of([x["threads"] for x in rs], "us_per_chunk"),
+                })
+            if "baseline" in svc and k["service_ingest_items_per_s"] and k["baseline_service_ingest_items_per_s"]:
+                k["service_vs_baseline"] = round(k["service_ingest_items_per_s"] / k["baseline_service_ingest_items_per_s"], 3)
+            k.update({
                 # the replay's own ceiling on one core (no network, no other process)
                 "inprocess_items_per_s": round(ref["items_per_s"]),
                 "inprocess_us_per_chunk_cpu": round(ref["us_per_chunk_cpu"], 1),
                 "inprocess_ratio_vs_raw_zenoh": round(ref["items_per_s"] / raw_med, 3),
-                "service_mb_per_s": None if svc_med is None else round(svc_med / IMAGE_CHUNK * chunk_bytes / 1e6, 1),
+                "store_only_us_per_chunk_cpu": median_of([x["threads"] for x in store if x["threads"]], "us_per_chunk"),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
-                "final_replay_stats": stats.snapshot()[-1][1] if stats.snapshot() else None,
-                "rounds": {"raw": raw, "store_only": store, "service": svc},
-            }
+                "final_replay_stats": {v: (st.snapshot()[-1][1] if st.snapshot() else None) for v, (_, _, st) in replays.items()},
+                "rounds": {"raw": raw, "store_only": store, **svc},
+            })
+            kinds[kind] = k
         out.update({
             "kinds": kinds,
-            "target_ingest_ratio": 0.7,
+            "target_service_fraction_of_store_only": 0.8,
             "publishers": N_PUBLISHERS,
-            "notes": ("frame-mode chunks of random uint8 frames (no compression); rates at the receiver; raw = "
-                      "the same encoded messages to a subscriber process that only copies the payload out; "
-                      "medians of alternating rounds; 2-core machine shared with other work: noisy"),
+            "shared_memory": bool(args.shm),
+            "codec": args.codec,
+            "sampler": None if sample_rate is None else {"batch": LEARNER_BATCH, "in_flight": LEARNER_IN_FLIGHT,
+                                                         "rate": sample_rate or "as served"},
+            "notes": ("frame-mode chunks of random uint8 frames (lz4 cannot shrink them); rates at the receiver; "
+                      "every party on the same transport settings (--shm); store-only = the same client "
+                      "publishers to a subscriber process that copies each payload into a ring of the replay's "
+                      "frame bytes; medians of alternating rounds; 2-core machine: noisy"),
             **machine_info(t_start),
         })
-        for kind in IMAGE_KINDS:  # last keys of the JSON line: the ratios
+        for kind in ([] if args.service_only else args.kinds):  # last keys of the JSON line: the ratios
             out[f"{kind}_store_only_ratio_vs_raw_zenoh"] = kinds[kind]["store_only_ratio_vs_raw_zenoh"]
             out[f"{kind}_ingest_ratio_vs_raw_zenoh"] = kinds[kind]["ingest_ratio_vs_raw_zenoh"]
+            if "baseline_service_fraction_of_store_only" in kinds[kind]:
+                out[f"{kind}_baseline_service_fraction_of_store_only"] = kinds[kind]["baseline_service_fraction_of_store_only"]
+            out[f"{kind}_service_fraction_of_store_only"] = kinds[kind]["service_fraction_of_store_only"]
     except BaseException as e:
         record_error(out, e)
     finally:
@@ -803,6 +1019,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-s", type=float, default=120.0, help=argparse.SUPPRESS)
     ap.add_argument("--store-mb", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--kind", choices=["cartpole", *IMAGE_KINDS], default="cartpole", help=argparse.SUPPRESS)
+    ap.add_argument("--shm", action="store_true",
+                    help="every party with Zenoh's shared memory on (transport.shared_memory; default off, as zenrl runs)")
+    ap.add_argument("--sample-rate", type=float, default=0.0,
+                    help="--images: batches/s the learner-like sampler takes during service rounds (0: as fast as served)")
+    ap.add_argument("--no-sampler", action="store_true", help="--images: no sampler during the service rounds")
+    ap.add_argument("--baseline", default=None, metavar="DIR",
+                    help="also measure the replay of the zenrl checkout DIR (run with DIR/.venv) in the same rounds: "
+                         "an A/B of the replay's code, e.g. --baseline /path/to/main")
+    ap.add_argument("--service-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a replay option for this checkout's replay only (not --baseline's), e.g. for an A/B of a setting")
+    ap.add_argument("--codec", choices=["lz4"], default=None,
+                    help="compress the chunks' uint8 arrays as actor.compress: lz4 does (--images)")
+    ap.add_argument("--batch", type=int, default=SAMPLE_BATCH, help=argparse.SUPPRESS)
+    ap.add_argument("--in-flight", type=int, default=IN_FLIGHT, help=argparse.SUPPRESS)
+    ap.add_argument("--rate", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--kinds", nargs="+", choices=IMAGE_KINDS, default=list(IMAGE_KINDS), help="--images: the kinds measured")
+    ap.add_argument("--service-only", action="store_true",
+                    help="--images: service rounds only (no raw, store-only or in-process reference; for diagnosis)")
+    ap.add_argument("--rounds", type=int, default=None, help="rounds per measurement (default 3, 1 with --quick)")
     ap.add_argument("--images", action="store_true",
                     help="image mode: frame-mode chunks of 64x64x3 and of 84x84x4 stacks instead of CartPole chunks")
     args = ap.parse_args(argv)

@@ -5,6 +5,11 @@ Facts about Zenoh 1.x this module is built on:
 
 * every zenrl process is a ``client`` of one router (a Python process can itself be the router:
   :func:`open_router`); multicast scouting is off and endpoints are explicit;
+* a plain Python callback (:meth:`Node.subscribe`) runs on a Python thread that Zenoh feeds
+  through an *unbounded* channel: a callback slower than its senders lets that channel grow
+  without limit. A receiver of bulk data pulls instead (:meth:`Node.inbox`): a bounded FIFO that
+  Zenoh's receive thread fills without the GIL and that blocks it when full, so back-pressure
+  reaches the senders;
 * data that must arrive is put with ``CongestionControl.BLOCK`` (the default DROP loses data);
   receivers must never stall for 5 s or the sender's link is closed, so receivers here either do
   cheap work in the callback or hand off to a bounded queue with a counted drop policy;
@@ -289,6 +294,17 @@ class Node:
         self._entities.append(sub)
         return sub
 
+    def inbox(self, key: str, capacity: int) -> "Inbox":
+        """Receive ``key``'s samples into a bounded FIFO of ``capacity`` that the caller pulls from
+        (:class:`Inbox`): no Python thread per subscriber and no GIL taken by Zenoh's receive
+        thread, which waits while the FIFO is full (back-pressure to the senders). The caller must
+        keep pulling (or drop what it cannot take, :meth:`Inbox.get_nowait`): a receive thread
+        blocked for 5 s makes the sending side close the link. :meth:`withdraw` (or closing the
+        node) closes the inbox; a blocked :meth:`Inbox.get` then returns None."""
+        sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(max(1, int(capacity))))
+        self._entities.append(sub)
+        return Inbox(sub)
+
     def subscribe_latest(self, key: str) -> "LatestValue":
         """Keep only the newest payload on ``key`` (never blocks the sender)."""
         lv = LatestValue()
@@ -370,6 +386,51 @@ class Node:
     def alive_now(self, key: str, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens alive now that match ``key``."""
         return [str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout_s) if r.ok is not None]
+
+
+class Received:
+    """One sample taken from an :class:`Inbox`: its ``key``, its size ``nbytes``, and
+    :meth:`data`, its payload copied out of Zenoh's buffers (a sample dropped unread is never
+    copied)."""
+
+    __slots__ = ("key", "_payload")
+
+    def __init__(self, key: str, payload: Any) -> None:
+        self.key = key
+        self._payload = payload
+
+    @property
+    def nbytes(self) -> int:
+        return len(self._payload)
+
+    def data(self) -> bytes:
+        return self._payload.to_bytes()
+
+
+class Inbox:
+    """A subscription's samples in a bounded FIFO, pulled by the owner's thread (see
+    :meth:`Node.inbox`). ``subscription`` is what :meth:`Node.withdraw` takes."""
+
+    def __init__(self, subscription: Any) -> None:
+        self.subscription = subscription
+        self._handler = subscription.handler
+
+    def get(self) -> Received | None:
+        """The next sample, waiting for one with the GIL released; None once the inbox is closed
+        (withdrawn, or its session closed) and empty."""
+        try:
+            s = self._handler.recv()
+        except zenoh.ZError:  # "channel is empty and closed"
+            return None
+        return Received(str(s.key_expr), s.payload)
+
+    def get_nowait(self) -> Received | None:
+        """The next sample if one is queued, else None (also when closed)."""
+        try:
+            s = self._handler.try_recv()
+        except zenoh.ZError:
+            return None
+        return None if s is None else Received(str(s.key_expr), s.payload)
 
 
 class LatestValue:

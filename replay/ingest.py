@@ -1,16 +1,24 @@
 """The replay's ingest: from a ``transitions/<actor>`` message to items in the store.
 
-Zenoh's callback (:meth:`Ingest.on_transitions`) only drops a quarantined source's chunk unread
-or puts the raw bytes in a bounded queue (never stalling the sender past Zenoh's 5 s BLOCK fuse:
-a chunk that cannot be queued within ``replay.drop_after_s`` is dropped and counted). The ingest
-thread runs :meth:`Ingest.unit` over and over: take what is queued (up to
-``replay.ingest_batch_chunks`` chunks) and :meth:`Ingest.ingest_many` it:
+Chunks wait in Zenoh's own bounded FIFO (:meth:`zenrl.common.transport.Node.inbox`), which
+Zenoh's receive thread fills without the GIL; no Python thread stands between it and the ingest
+thread. The ingest thread runs :meth:`Ingest.unit` over and over: wait for a chunk, take it and
+whatever else is queued (up to ``replay.ingest_batch_chunks`` chunks and ``replay.queue_max_bytes``
+bytes; a quarantined source's chunk is dropped unread, an oversized one refused unread) and
+:meth:`Ingest.ingest_many` them:
 
 1. decode each message (:class:`~zenrl.common.protocol.TransitionBatch`: form, sizes, finiteness);
 2. the first chunk that passes the checks allocates the storage (:func:`zenrl.replay.store.allocate`);
 3. each chunk must fit the storage's layout (``spec``), then mean what the env allows
    (:mod:`zenrl.replay.checks`, with ``replay.check_semantics``);
 4. the good ones are inserted together and each is appended to the journal.
+
+The FIFO holds ``min(replay.queue_size, max(1, replay.queue_max_bytes // chunk cap))`` chunks
+(so what waits there stays within ``queue_max_bytes``); when it is full, Zenoh's receive thread
+waits, and with it the senders (BLOCK). That wait must stay below Zenoh's 5 s fuse
+(the sending side closes a link stalled that long): :meth:`Ingest.relieve`, run every
+``drop_after_s / 4`` by a thread of its own, drops and counts (``dropped_queue_full``) what waits
+in the FIFO while the ingest thread has been busy with one batch for ``replay.drop_after_s``.
 
 A bad chunk is rejected alone and counted by reason (``rejected_<reason>``) and by source; a
 source that keeps sending bad chunks is quarantined. Any other exception while one chunk is
@@ -21,10 +29,9 @@ next chunk is handled: no message can end the ingest thread.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Iterator
 
 from zenrl.common import protocol as P
 from zenrl.common.errors import ProtocolError, SpecMismatch
@@ -48,8 +55,10 @@ def source_of(key: str) -> str:
 
 
 class Ingest:
-    """Queue, checks and insert of transitions chunks. ``lock`` guards the store (shared with
-    sampling and the journal); ``journal`` (or None) gets each inserted chunk."""
+    """Intake, checks and insert of transitions chunks. ``lock`` guards the store (shared with
+    sampling and the journal); ``journal`` (or None) gets each inserted chunk. The chunks come from
+    ``inbox`` (set by the service: a :class:`~zenrl.common.transport.Inbox` of ``inbox_capacity``
+    chunks), or are handed to :meth:`ingest_many` directly (in-process use, the journal's replay)."""
 
     def __init__(self, rcfg: Any, seed: int, max_bytes: int, checker: Checker | None, lock: threading.Lock,
                  journal: Any | None = None) -> None:
@@ -58,16 +67,17 @@ class Ingest:
         self.lock = lock
         self.journal = journal
         self.store: Store | None = None
-        self.queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=rcfg.queue_size)
-        #: bytes of the chunks in ``queue`` and in the ingest thread's hands (so that both together
-        #: stay within ``replay.queue_max_bytes``); ``_space`` guards it and wakes a waiting callback
-        self.queued_bytes = 0
-        self._space = threading.Condition()
-        #: chunks the ingest thread has taken from the queue and not finished
+        #: where chunks wait (``get()``, ``get_nowait()`` of :class:`~zenrl.common.transport.Received`)
+        self.inbox: Any | None = None
+        #: chunks the inbox holds: as many of the largest admitted chunk as ``queue_max_bytes`` takes
+        #: (at least one, at most ``queue_size``), so that what waits there stays within it
+        self.inbox_capacity = min(rcfg.queue_size, max(1, rcfg.queue_max_bytes // max_bytes))
+        #: chunks the ingest thread has taken from the inbox and not finished
         self.in_hand = 0
+        #: monotonic time the ingest thread started on its current batch; None between batches
+        self._busy_since: float | None = None
         self.limits = P.DecodeLimits(rcfg.max_decoded_bytes, None if checker is None else checker.packed_shapes())
-        #: set first on shutdown: the callback then returns at once (never waits on a queue that
-        #: is about to stop being drained)
+        #: set first on shutdown (ends the relief thread's wait)
         self.closing = threading.Event()
         self.rejects = RejectCounter(log, "message")
         self.quarantine = Quarantine(rcfg.quarantine_rejections, rcfg.quarantine_window_s, rcfg.quarantine_s)
@@ -80,98 +90,122 @@ class Ingest:
         #: items the learner reports poisonous are charged to it
         self.origins: Any | None = None
         self.dropped_queue_full = 0
-        self.dropped_stopping = 0
         self.dropped_quarantined = 0
 
-    # -- the queue ------------------------------------------------------------------------------
-    def on_transitions(self, key: str, payload: bytes) -> None:
-        """Zenoh's callback for ``transitions/*``: enqueue, or drop and count."""
-        if self.quarantine.active and self.quarantine.drop(source_of(key)):
-            self.dropped_quarantined += 1  # unread: a quarantined source costs a dict lookup
-            return
-        if len(payload) > self.max_bytes:  # refused before it takes any room in the queue
-            self.reject("size", f"{len(payload)} bytes exceeds the cap of {self.max_bytes} bytes", key)
-            return
-        # wait for queue space (a free slot and room for its bytes; an empty queue takes any
-        # chunk) in short slices so that a shutdown is noticed at once, not after drop_after_s
-        # per chunk (a full queue's consumer may be the one stopping)
-        n = len(payload)
-        cap = self.rcfg.queue_max_bytes
-        deadline = time.monotonic() + self.rcfg.drop_after_s
-        with self._space:
-            while not self.closing.is_set():
-                if self.queued_bytes == 0 or (self.queued_bytes + n <= cap and not self.queue.full()):
-                    try:
-                        self.queue.put_nowait((key, payload))
-                    except queue.Full:
-                        pass
-                    else:
-                        self.queued_bytes += n
-                        return
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    self.dropped_queue_full += 1
-                    self.rejects.reject("queue_full", f"ingest queue full ({self.queue.qsize()} chunks, {self.queued_bytes} "
-                                        f"bytes) for {self.rcfg.drop_after_s} s; chunk dropped", key)
-                    return
-                self._space.wait(min(0.05, left))
-        self.dropped_stopping += 1  # arrived while stopping: never inserted, so never acknowledged as such
-
+    # -- the intake -----------------------------------------------------------------------------
     def unit(self) -> int:
-        """The ingest thread's unit of work: wait briefly for a chunk, then ingest it together with
-        what else is queued (one insert and tree update for many chunks). Returns items inserted."""
-        try:
-            first = self._took(self.queue.get(timeout=0.2))
-        except queue.Empty:
+        """The ingest thread's unit of work: wait for a chunk (the GIL released), then ingest it
+        together with what else waits (one insert and tree update for many chunks). Returns items
+        inserted; 0 when the inbox is closed (the service is stopping)."""
+        first = None if self.inbox is None else self.inbox.get()
+        if first is None:  # closed (or not attached): stopping; wait, never spin
+            if self.closing.is_set():
+                time.sleep(0.01)
+            else:
+                self.closing.wait(0.2)
             return 0
-        return self._ingest_queued(first)
+        return self._ingest_from(first)
 
-    def _took(self, item: tuple[str, bytes]) -> tuple[str, bytes]:
-        """A chunk taken from the queue; its bytes stay counted until :meth:`_done` (the ingest
-        thread holds them meanwhile)."""
-        return item
-
-    def _done(self, batch: Sequence[tuple[str, bytes]]) -> None:
-        """The chunks of ``batch`` are handled: their bytes free room for the callback."""
-        with self._space:
-            self.queued_bytes -= sum(len(p) for _, p in batch)
-            self._space.notify()
-
-    def pending(self) -> int:
-        """Chunks waiting: in the queue, and those the ingest thread has taken but not finished
-        (a thread stuck on the chunks it holds has input waiting too: the supervisor reports
-        it stalled)."""
-        return self.queue.qsize() + self.in_hand
-
-    def drain(self) -> None:
-        """On stop: insert (and log) what was queued before the subscriber went, not lose it."""
-        while True:
-            try:
-                first = self._took(self.queue.get_nowait())
-            except queue.Empty:
-                return
-            self._ingest_queued(first)
-
-    def _ingest_queued(self, first: tuple[str, bytes]) -> int:
-        batch = [first]
-        while len(batch) < self.rcfg.ingest_batch_chunks:
-            try:
-                batch.append(self._took(self.queue.get_nowait()))
-            except queue.Empty:
-                break
-        self.in_hand = len(batch)
+    def _ingest_from(self, first: Any) -> int:
+        """Ingest ``first`` and what waits behind it as one batch (:meth:`_pull`)."""
+        self._busy_since = time.monotonic()
         try:
-            return self.ingest_many([(payload, key) for key, payload in batch])
+            return self.ingest_many(self._pull(first))
         finally:
             self.in_hand = 0
-            self._done(batch)
+            self._busy_since = None
+
+    def _pull(self, first: Any) -> Iterator[tuple[bytes, str]]:
+        """``first`` and the chunks that wait behind it, up to ``replay.ingest_batch_chunks``
+        chunks and ``replay.queue_max_bytes`` bytes (the first always). What waits in the inbox
+        is taken at once (leaving it empty: Zenoh's receive thread, if it waited on a full
+        inbox, is woken once and refills it while the batch is ingested, not once per chunk).
+        An inbox of one chunk is also taken from as the batch is decoded, so that what the
+        receive thread puts in meanwhile joins the batch."""
+        taken, held = 0, 0
+        limit_n, limit_b = self.rcfg.ingest_batch_chunks, self.rcfg.queue_max_bytes
+        waiting, size = [first], first.nbytes
+        while len(waiting) < min(limit_n, self.inbox_capacity + 1) and size < limit_b:
+            r = self.inbox.get_nowait()
+            if r is None:
+                break
+            waiting.append(r)
+            size += r.nbytes
+        for i, r in enumerate(waiting):
+            item = self._take(r)
+            waiting[i] = None  # a dropped chunk's buffer goes now
+            if item is not None:
+                taken += 1
+                held += len(item[0])
+                self.in_hand = taken
+                yield item
+        while self.inbox_capacity == 1 and taken < limit_n and held < limit_b:
+            r = self.inbox.get_nowait()
+            if r is None:
+                return
+            item = self._take(r)
+            if item is not None:
+                taken += 1
+                held += len(item[0])
+                self.in_hand = taken
+                yield item
+
+    def _take(self, r: Any) -> tuple[bytes, str] | None:
+        """A received chunk's ``(payload, key)``, or None when it is dropped unread: its source is
+        quarantined (a dict lookup), or it exceeds the chunk cap (refused before it is copied)."""
+        if self.quarantine.active and self.quarantine.drop(source_of(r.key)):
+            self.dropped_quarantined += 1
+            return None
+        n = r.nbytes
+        if n > self.max_bytes:
+            self.reject("size", f"{n} bytes exceeds the cap of {self.max_bytes} bytes", r.key)
+            return None
+        return r.data(), r.key
+
+    def pending(self) -> int:
+        """Chunks the ingest thread has taken and not finished (a thread stuck on the chunks it
+        holds has input waiting: the supervisor reports it stalled)."""
+        return self.in_hand
+
+    def drain(self) -> None:
+        """On stop (the inbox closed): insert (and log) what waits in it, not lose it."""
+        while self.inbox is not None:
+            r = self.inbox.get_nowait()
+            if r is None:
+                return
+            self._ingest_from(r)
+
+    def relieve(self) -> int:
+        """If the ingest thread has been busy with one batch for ``replay.drop_after_s``, drop
+        (and count) the chunks waiting in the inbox, so that Zenoh's receive thread, waiting on a
+        full inbox, never waits into the 5 s fuse that closes the link. Returns chunks dropped."""
+        since = self._busy_since
+        if self.inbox is None or since is None:
+            return 0
+        busy = time.monotonic() - since
+        if busy < self.rcfg.drop_after_s:
+            return 0
+        n = 0
+        while (r := self.inbox.get_nowait()) is not None:
+            n += 1
+            self.dropped_queue_full += 1
+            self.rejects.reject("queue_full", f"the ingest thread has been busy with one batch for {busy:.1f} s "
+                                f"(inbox of {self.inbox_capacity} full); chunk dropped", r.key)
+        return n
+
+    def relief_unit(self) -> None:
+        """The relief thread's unit: :meth:`relieve` every ``replay.drop_after_s / 4``."""
+        if self.closing.is_set():  # stopping: wait for the thread's stop, never spin
+            time.sleep(0.05)
+        elif not self.closing.wait(self.rcfg.drop_after_s / 4):
+            self.relieve()
 
     # -- decode, check, insert -------------------------------------------------------------------
-    def ingest_many(self, items: Sequence[tuple[bytes, str]]) -> int:
-        """Decode, check and insert each ``(payload, source)``; the good ones as one batch (a new
-        batch each time the decoded chunks reach ``replay.max_decoded_bytes``, so that the
-        decoded data held at once stays bounded). A bad chunk is rejected and counted alone.
-        Returns the items inserted."""
+    def ingest_many(self, items: Iterable[tuple[bytes, str]]) -> int:
+        """Decode, check and insert each ``(payload, source)`` (``items`` is consumed as the chunks
+        are decoded); the good ones as one batch (a new batch each time the decoded chunks reach
+        ``replay.max_decoded_bytes``, so that the decoded data held at once stays bounded). A bad
+        chunk is rejected and counted alone. Returns the items inserted."""
         chunks: list[Chunk] = []
         held, n = 0, 0
         for payload, source in items:
@@ -331,13 +365,13 @@ class Ingest:
                         self.rcfg.quarantine_s, self.rcfg.quarantine_rejections, self.rcfg.quarantine_window_s, reason)
 
     def stats_values(self) -> dict[str, Any]:
-        """``inserts_per_s``, the drop counters, ``ingest_queue``, ``rejected_<reason>`` (with
-        ``rejected_internal/<Type>``), the top ``rejected_from/<source>`` and the quarantine."""
+        """``inserts_per_s``, the drop counters, ``ingest_queue`` (chunks the ingest thread holds),
+        ``rejected_<reason>`` (with ``rejected_internal/<Type>``), the top
+        ``rejected_from/<source>`` and the quarantine."""
         v: dict[str, Any] = {
             "inserts_per_s": self.inserted.rate(),
             "dropped_queue_full": self.dropped_queue_full,
-            "dropped_stopping": self.dropped_stopping,
-            "ingest_queue": self.queue.qsize(),
+            "ingest_queue": self.in_hand,
         }
         v.update(self.rejects.as_values())
         v.update(self.ledger.values(TOP_SOURCES))

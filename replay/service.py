@@ -4,9 +4,11 @@ publishes :class:`Stats` on ``stats/replay/<id>`` every ``replay.stats_interval_
 
 Keys (see :class:`zenrl.common.protocol.Keys`) and who handles them:
 
-* ``transitions/*`` (:class:`TransitionBatch`) -> :mod:`zenrl.replay.ingest`: the callback queues
-  the bytes; the ingest thread (started through the supervisor, so a stall shows in the stats as
-  ``stalled``) decodes, checks and inserts into the storage (:mod:`zenrl.replay.store`);
+* ``transitions/*`` (:class:`TransitionBatch`) -> :mod:`zenrl.replay.ingest`: chunks wait in a
+  bounded Zenoh FIFO (:meth:`~zenrl.common.transport.Node.inbox`) that the ingest thread (started
+  through the supervisor, so a stall shows in the stats as ``stalled``) pulls from, then decodes,
+  checks and inserts into the storage (:mod:`zenrl.replay.store`); a relief thread drops what
+  waits while the ingest thread is stuck (so that Zenoh never closes the link);
 * ``replay/sample`` and ``replay/priorities`` -> :mod:`zenrl.replay.sampling`;
 * ``quarantine/<actor>``: a liveliness token held while a source is quarantined, so that slot
   claims (``zenrl.actor.slots``) treat its exploration slot as free.
@@ -14,16 +16,19 @@ Keys (see :class:`zenrl.common.protocol.Keys`) and who handles them:
 With ``replay.durable`` every inserted chunk is logged and the storage is restored from the log
 at start (:mod:`zenrl.replay.journal`). With ``replay.check_semantics`` (default) chunks are also
 checked against the run's env spec (:mod:`zenrl.replay.checks`) and a source that keeps failing
-is quarantined (its chunks dropped unread in the callback).
+is quarantined (its chunks dropped unread as they are taken).
 
-On stop (:meth:`ReplayService.close`): new chunks are refused (the callback returns at once) and
-the transitions subscriber undeclared, the ingest thread inserts what was queued, then the log is
-flushed and the final snapshot written; the caller closes the session.
+On stop (:meth:`ReplayService.close`): the transitions subscriber is undeclared (its FIFO closed),
+the ingest thread inserts what was waiting in it, then the log is flushed and the final snapshot
+written; the caller closes the session.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -74,6 +79,7 @@ class ReplayService:
         self._role_stop = stop or self._stop
         self._tx_sub: Any = None
         self._ingest_thread: WatchedThread | None = None
+        self._relief_thread: WatchedThread | None = None
         self._quarantine_tokens: dict[str, Any] = {}
 
     # -- what tests and tools reach -------------------------------------------------------------
@@ -121,11 +127,16 @@ class ReplayService:
 
     # -- the Worker -----------------------------------------------------------------------------
     def start(self, node: Node, sup: Supervisor) -> None:
-        """Start the ingest thread, then declare the subscriptions and the sample queryable."""
+        """Declare the transitions inbox, start the ingest and relief threads, then declare the
+        priorities subscription and the sample queryable."""
         self.node = node
+        inbox = node.inbox(self.keys.transitions_all, self.ingestor.inbox_capacity)
+        self.ingestor.inbox = inbox
+        self._tx_sub = inbox.subscription
         self._ingest_thread = sup.thread("replay-ingest", self.ingestor.unit, self._stop,
                                          pending=self.ingestor.pending, drain=self.ingestor.drain)
-        self._tx_sub = node.subscribe(self.keys.transitions_all, self.ingestor.on_transitions)
+        # no input of its own: it counts as stalled only if it dies
+        self._relief_thread = sup.thread("replay-relief", self.ingestor.relief_unit, self._stop, pending=lambda: 0)
         node.subscribe(self.keys.priorities, self.sampler.on_priorities)
         node.queryable(self.keys.sample, self.sampler.on_sample)
         log.info("replay service %s up on %s", self.id, self.keys.prefix)
@@ -157,10 +168,10 @@ class ReplayService:
         """Nothing: the journal is the replay's saved state, written as chunks arrive."""
 
     def close(self) -> None:
-        """Stop in an order that cannot stall under ingest load: refuse new chunks (the
-        callback returns at once) and undeclare the transitions subscriber, let the ingest
-        thread insert what is already queued, then flush the log and write the final snapshot.
-        The session is closed by the caller after this returns."""
+        """Stop in an order that cannot stall under ingest load: undeclare the transitions
+        subscriber (its inbox closes: a waiting ingest thread wakes), let the ingest thread insert
+        what already waits in it, then flush the log and write the final snapshot. The session is
+        closed by the caller after this returns."""
         self.ingestor.closing.set()
         if self._tx_sub is not None:
             self.node.withdraw(self._tx_sub)  # never raises: the session may be gone (router down)
@@ -168,6 +179,8 @@ class ReplayService:
         self._stop.set()
         if self._ingest_thread is not None:
             self._ingest_thread.join(timeout=5)
+        if self._relief_thread is not None:
+            self._relief_thread.join(timeout=1)
         if self.journal is not None:
             with self._lock:
                 self.journal.finish(self.buffer)
@@ -247,9 +260,36 @@ def rx_cap(cfg: RunConfig) -> int:
     return min(cfg.transport.max_message_bytes, max(cfg.replay.max_chunk_bytes, _CONTROL_BYTES))
 
 
+#: glibc ``mallopt`` parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: allocations below this come from malloc's heaps, not a fresh ``mmap`` each (glibc's maximum)
+KEEP_BELOW_BYTES = 32 * 1024 * 1024
+#: free memory malloc keeps at a heap's top instead of handing it back to the OS
+KEEP_FREE_BYTES = 256 * 1024 * 1024
+
+
+def keep_freed_memory() -> bool:
+    """Make glibc's malloc reuse freed memory in this process instead of returning it to the OS
+    and faulting it in again: each chunk (and each sample reply) allocates and frees buffers of
+    its own size, up to ``replay.max_chunk_bytes``, which malloc otherwise maps and unmaps anew
+    (or trims off a heap) every time. On a VM where a page fault costs ~25 us, that re-faulting
+    cost more CPU per chunk than decoding and storing it. The resident size stays at the peak
+    of those buffers (bounded by the ingest limits, see docs/architecture.md). Returns whether
+    it took (glibc only; elsewhere a no-op)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None)
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BELOW_BYTES) and libc.mallopt(_M_TRIM_THRESHOLD, KEEP_FREE_BYTES))
+    except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+        return False
+
+
 def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:
     """Entry point of ``zenrl replay``: build, run in the role loop until ``stop``, close the
     session. Raises :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
+    if not keep_freed_memory():
+        log.info("malloc tuning not available here: chunk buffers are allocated fresh each time")
     with Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg)) as node:
         svc = ReplayService(cfg, node, run_id, service_id, stop)
         # idle waits no longer than the stats interval, so that a short one is kept

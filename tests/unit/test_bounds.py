@@ -9,6 +9,7 @@ bounded and it never stops quarantining; a stalled ingest thread is what the hea
 from __future__ import annotations
 
 import math
+import queue
 import threading
 import time
 
@@ -26,6 +27,8 @@ from zenrl.common.roles import Supervisor
 from zenrl.health import judge
 from zenrl.replay.checks import ChunkChecker, ObsRule
 from zenrl.replay.service import ReplayService
+
+from tests.unit.inbox_fake import FakeInbox
 
 B = 8
 #: what msgpack can carry: -2^63 .. 2^64-1, with the edges of every integer type
@@ -273,34 +276,86 @@ def test_ingest_counts_no_internal_error_for_integer_and_shape_attacks(field, v,
     assert n in (2 * B, 3 * B) and v_.get("rejected_total", 0) == (3 * B - n) // B
 
 
-# -- memory: the queue in bytes, the decoded data held at once ----------------------------------
-def test_the_ingest_queue_is_bounded_in_bytes():
-    svc = _service(checker=False, capacity=10_000, queue_max_bytes=100_000, queue_size=1000, drop_after_s=0.2)
+# -- memory: the inbox and each batch in bytes, the decoded data held at once --------------------
+TX = "zenrl/r/transitions/a0"
+
+
+def test_the_inbox_holds_what_queue_max_bytes_takes_of_the_largest_chunks():
+    assert _service(checker=False, queue_max_bytes=100_000, max_chunk_bytes=30_000).ingestor.inbox_capacity == 3
+    assert _service(checker=False, queue_max_bytes=100_000, max_chunk_bytes=200_000).ingestor.inbox_capacity == 1
+    assert _service(checker=False, queue_size=2, queue_max_bytes=100_000, max_chunk_bytes=1024).ingestor.inbox_capacity == 2
+    assert _service(checker=False).ingestor.inbox_capacity == 16  # the defaults: 256 MiB over 16 MiB
+    # the transport's cap, when lower, is the chunk cap
+    svc = ReplayService(load_config(None, ["replay.queue_max_bytes=100000", "replay.max_chunk_bytes=200000",
+                                           "transport.max_message_bytes=50000"], environ={}), node=None, run_id="r")
+    assert svc.ingestor.inbox_capacity == 2
+
+
+def test_a_batch_takes_at_most_queue_max_bytes_and_the_first_chunk_always():
+    svc = _service(checker=False, capacity=10_000, queue_max_bytes=100_000)
     ing = svc.ingestor
-    big = P.TransitionBatch("a0", 0, 0, _plain(b=1500)).encode()
-    assert 40_000 < len(big) < 100_000
-    key = "zenrl/r/transitions/a0"
-    ing.on_transitions(key, big)
-    t = time.monotonic()
-    ing.on_transitions(key, big)  # does not fit: waits drop_after_s, then dropped and counted
-    assert time.monotonic() - t >= 0.2 and ing.dropped_queue_full == 1 and ing.queued_bytes == len(big)
-    small = P.TransitionBatch("a0", 0, 1, _plain()).encode()
-    ing.on_transitions(key, small)
-    assert ing.pending() == 2 and ing.queued_bytes == len(big) + len(small)
-    # a consumer freeing room wakes a waiting callback at once
-    threading.Timer(0.05, ing.unit).start()
-    t = time.monotonic()
-    ing.on_transitions(key, big)
-    assert time.monotonic() - t < 0.19 and ing.dropped_queue_full == 1
-    ing.drain()
-    assert ing.queued_bytes == 0 and svc.buffer.inserts_total == 2 * 1500 + B
-
-
-def test_one_chunk_larger_than_the_byte_bound_still_enters_an_empty_queue():
+    ing.inbox = FakeInbox(TX, 10)  # more than the service's own inbox holds: the batch bound is the one tested
+    big = [P.TransitionBatch("a0", 0, i, _plain(b=1000)).encode() for i in range(5)]
+    assert 40_000 < len(big[0]) < 50_000
+    for p in big:
+        ing.inbox.put(TX, p)
+    assert ing.unit() == 3 * 1000  # 3 chunks reach 100,000 bytes: the rest wait for the next batch
+    assert ing.inbox.qsize() == 2 and ing.pending() == 0
+    assert ing.unit() == 2 * 1000
+    # one chunk larger than the bound is still taken (alone)
     svc = _service(checker=False, queue_max_bytes=1024)
-    big = P.TransitionBatch("a0", 0, 0, _plain(b=200)).encode()
-    svc.ingestor.on_transitions("zenrl/r/transitions/a0", big)
-    assert svc.ingestor.pending() == 1
+    svc.ingestor.inbox = FakeInbox(TX, 10)
+    for i in range(2):
+        svc.ingestor.inbox.put(TX, P.TransitionBatch("a0", 0, i, _plain(b=200)).encode())
+    assert svc.ingestor.unit() == 200 and svc.ingestor.inbox.qsize() == 1
+
+
+def test_a_chunk_over_the_cap_is_refused_unread():
+    svc = _service(checker=False, max_chunk_bytes=20_000)
+    ing = svc.ingestor
+    ing.inbox = FakeInbox(TX, 4)
+    big = ing.inbox.put(TX, P.TransitionBatch("a0", 0, 0, _plain(b=1500)).encode())
+    ok = ing.inbox.put(TX, P.TransitionBatch("a0", 0, 1, _plain()).encode())
+    assert big.nbytes > 20_000
+    assert ing.unit() == B and big.copied == 0 and ok.copied == 1
+    assert svc.stats_values()["rejected_size"] == 1
+
+
+def test_a_stuck_ingest_thread_has_what_waits_dropped_and_counted():
+    """The ingest thread stuck on a batch (here on the storage lock, as a stuck insert or disk would
+    leave it) while chunks arrive: after replay.drop_after_s the relief thread drops and counts
+    what waits in the inbox, so that Zenoh's receive thread (``put``) never waits into the 5 s fuse;
+    once the thread moves again, every chunk is either stored or counted as dropped."""
+    svc = _service(checker=False, queue_max_bytes=2 * 4096, max_chunk_bytes=4096, drop_after_s=0.4)
+    node, sup = _Node(), Supervisor()
+    svc.start(node, sup)
+    inbox = node.inboxes[svc.keys.transitions_all]
+    assert inbox.capacity == 2
+    try:
+        inbox.put(TX, P.TransitionBatch("a0", 0, 0, _plain()).encode())
+        _until(lambda: svc.buffer is not None and svc.buffer.inserts_total == B)
+        with svc._lock:
+            inbox.put(TX, P.TransitionBatch("a0", 0, 1, _plain()).encode())
+            _until(lambda: svc.ingestor.pending() == 1)  # taken, stuck on the lock
+            t0 = time.monotonic()
+            for i in range(2, 8):  # 6 more: the inbox (2) fills, the receive thread waits, is relieved
+                inbox.put(TX, P.TransitionBatch("a0", 0, i, _plain()).encode(), timeout=3.0)
+            assert 0.3 < time.monotonic() - t0 < 3.0
+            _until(lambda: svc.ingestor.dropped_queue_full >= 4)
+        _until(lambda: svc.ingestor.pending() == 0 and inbox.qsize() == 0 and svc.buffer.inserts_total > 2 * B)
+        dropped = svc.ingestor.dropped_queue_full
+        v = svc.stats_values()
+        assert v["rejected_queue_full"] == dropped and v["dropped_queue_full"] == dropped
+        assert svc.buffer.inserts_total == (8 - dropped) * B
+    finally:
+        svc.close()
+
+
+def _until(cond, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
 
 
 def test_decoded_chunks_held_at_once_are_bounded(monkeypatch):
@@ -433,7 +488,11 @@ def test_the_status_line_stays_bounded():
 # -- health: a stalled ingest thread ------------------------------------------------------------
 class _Node:
     def __init__(self):
-        self.subs = {}
+        self.subs, self.inboxes = {}, {}
+
+    def inbox(self, key, capacity):
+        self.inboxes[key] = FakeInbox(key, capacity)
+        return self.inboxes[key]
 
     def subscribe(self, key, cb):
         self.subs[key] = cb
@@ -443,18 +502,19 @@ class _Node:
         return key
 
     def withdraw(self, x):
-        pass
+        if x in self.inboxes:
+            self.inboxes[x].close()
 
 
 def test_health_fails_while_the_ingest_thread_makes_no_progress_with_input_waiting():
     """The real ingest thread, blocked (here on the storage lock, as a stuck insert would leave
     it) while chunks wait: the supervisor reports it stalled and the health verdict fails; once
     it moves again the verdict recovers."""
-    svc = _service(checker=False)
+    svc = _service(checker=False, queue_max_bytes=4 * 4096, max_chunk_bytes=4096)
     node, sup = _Node(), Supervisor(stall_s=0.3)
     svc.start(node, sup)
     key = "zenrl/r/transitions/a0"
-    node.cb = node.subs[svc.keys.transitions_all]
+    node.cb = node.inboxes[svc.keys.transitions_all].put
     try:
         node.cb(key, P.TransitionBatch("a0", 0, 0, _plain()).encode())
         deadline = time.monotonic() + 10

@@ -13,6 +13,8 @@ from zenrl.common.roles import Supervisor
 from zenrl.replay.service import ReplayService
 from zenrl.replay.store import PlainStore
 
+from tests.unit.inbox_fake import FakeInbox
+
 B = 8
 
 
@@ -89,10 +91,15 @@ def test_an_insert_that_raises_is_retried_chunk_by_chunk(monkeypatch):
 
 
 class FakeNode:
-    """Records declarations; the test calls the callbacks as Zenoh's threads would."""
+    """Records declarations; the test calls the callbacks and fills the inboxes as Zenoh's
+    threads would."""
 
     def __init__(self):
-        self.subs, self.queryables, self.tokens, self.withdrawn = {}, {}, [], []
+        self.subs, self.queryables, self.tokens, self.withdrawn, self.inboxes = {}, {}, [], [], {}
+
+    def inbox(self, key, capacity):
+        self.inboxes[key] = FakeInbox(key, capacity)
+        return self.inboxes[key]
 
     def subscribe(self, key, cb):
         self.subs[key] = cb
@@ -108,6 +115,8 @@ class FakeNode:
 
     def withdraw(self, entity):
         self.withdrawn.append(entity)
+        if entity in self.inboxes:
+            self.inboxes[entity].close()
         return True
 
 
@@ -123,12 +132,12 @@ def test_the_ingest_thread_outlives_a_message_that_raises(monkeypatch):
     svc = _service()
     node, sup = FakeNode(), Supervisor()
     svc.start(node, sup)
-    on_tx = node.subs[svc.keys.transitions_all]
+    inbox = node.inboxes[svc.keys.transitions_all]
     try:
-        on_tx(svc.keys.transitions("evil"), _payload(0, actor="evil"))
-        on_tx(svc.keys.transitions("a0"), _payload(1))
+        inbox.put(svc.keys.transitions("evil"), _payload(0, actor="evil"))
+        inbox.put(svc.keys.transitions("a0"), _payload(1))
         _wait(lambda: svc.buffer is not None and svc.buffer.inserts_total == B)
-        on_tx(svc.keys.transitions("a0"), _payload(2))
+        inbox.put(svc.keys.transitions("a0"), _payload(2))
         _wait(lambda: svc.buffer.inserts_total == 2 * B)
         sup.check()  # no RoleFailed: the thread runs
         v = {**svc.report(1.0)[0], **sup.values()}
@@ -138,12 +147,29 @@ def test_the_ingest_thread_outlives_a_message_that_raises(monkeypatch):
     assert node.withdrawn == [svc.keys.transitions_all]  # the transitions subscriber goes first
 
 
-def test_close_inserts_what_was_queued():
-    svc = _service()
+def test_close_inserts_what_was_waiting_in_the_inbox(monkeypatch):
+    # an inbox of 8 chunks (the byte bound over the chunk cap), batches of one chunk
+    svc = _service(queue_max_bytes=8 * 4096, max_chunk_bytes=4096, ingest_batch_chunks=1)
     node, sup = FakeNode(), Supervisor()
-    for i in range(5):  # queued before the thread runs: close() must still insert them all
-        svc.ingestor.on_transitions(svc.keys.transitions("a0"), _payload(i))
+    started = []
+    real = type(svc.ingestor).ingest_many
+
+    def held(self, items):  # busy with the first chunk until close() has begun: the rest still wait
+        started.append(1)
+        while len(started) == 1 and not self.closing.is_set():
+            time.sleep(0.005)
+        return real(self, items)
+
+    monkeypatch.setattr(type(svc.ingestor), "ingest_many", held)
     svc.start(node, sup)
+    inbox = node.inboxes[svc.keys.transitions_all]
+    assert inbox.capacity == 8
+    inbox.put(svc.keys.transitions("a0"), _payload(0))
+    _wait(lambda: started)
+    for i in range(1, 6):  # waiting when close() comes: it must still insert them all
+        inbox.put(svc.keys.transitions("a0"), _payload(i))
+    assert inbox.qsize() == 5
     svc.close()
-    assert svc.buffer.inserts_total == 5 * B and svc.ingestor.pending() == 0
+    assert svc.buffer.inserts_total == 6 * B and svc.ingestor.pending() == 0 and inbox.qsize() == 0
+    assert node.withdrawn == [svc.keys.transitions_all]
     assert not any(t.is_alive() for t in sup.threads)
