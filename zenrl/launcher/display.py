@@ -71,10 +71,13 @@ class Progress:
                     self.replays[msg.id] = dict(msg.values)
                     if len(self.replays) == 1:
                         self.replay = dict(msg.values)
-                    else:
-                        self.replay = {k: sum(int(v.get(k) or 0) for v in self.replays.values())
-                                       for k in ("size", "capacity", "inserted_total")}
-                        self.replay["shards"] = len(self.replays)
+                    else:  # a sharded replay: its counts, sizes, rates and mass summed over the shards
+                        tot: dict[str, Any] = {}
+                        for v in self.replays.values():
+                            for k, x in v.items():
+                                if isinstance(x, (int, float)) and not isinstance(x, bool):
+                                    tot[k] = tot.get(k, 0) + x
+                        self.replay = {**tot, "shards": len(self.replays)}
             elif isinstance(msg, P.EpisodeStats):
                 self._actor(msg.actor_id, msg.env_steps)
                 self.recent_returns = (self.recent_returns + [float(x) for x in msg.returns])[-100:]

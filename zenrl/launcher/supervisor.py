@@ -460,7 +460,8 @@ class Launcher:
             solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
         return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
                 "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
-                "replay": p.replay, **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
+                "replay": p.replay, **({"replays": p.replays} if len(p.replays) > 1 else {}),
+                **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
                 "solved": solved is not None,
                 "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
                 "restarts": segment["restarts"], "segments": [*self.earlier, segment]}
