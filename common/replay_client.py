@@ -306,6 +306,7 @@ class SamplePrefetcher:
             log.warning("could not prepare a sampled batch: %s", e)
             self._failed()
             return
+        self.last_not_ready_reason = ""  # served again: a reason from before would mislead
         for part in parts:
             self._ready.put_nowait(part)
 

@@ -265,3 +265,34 @@ def test_a_shard_reply_with_the_wrong_count_or_fields_is_refused_not_raised():
     bad = [r for r in results if isinstance(r, P.ProtocolError)]
     assert bad and all("shard 2" in str(r) for r in bad)
     assert client.state[2].failed >= 1
+
+
+def test_shard_keys_are_apart_from_each_other_and_from_the_unsharded_ones():
+    import zenoh
+
+    one, s0, s1 = P.Keys(RUN), P.Keys(RUN, 0), P.Keys(RUN, 1)
+    assert (one.sample, one.priorities, one.transitions("a0")) == (
+        f"zenrl/{RUN}/replay/sample", f"zenrl/{RUN}/replay/priorities", f"zenrl/{RUN}/transitions/a0")
+    assert (s1.sample, s1.priorities, s1.transitions("a0"), s1.transitions_all) == (
+        f"zenrl/{RUN}/replay/1/sample", f"zenrl/{RUN}/replay/1/priorities", f"zenrl/{RUN}/transitions/1/a0",
+        f"zenrl/{RUN}/transitions/1/*")
+    assert s1.weights == one.weights and s1.stats("replay", "replay-1") == one.stats("replay", "replay-1")
+    # each replay's subscription takes its own actors' chunks and no other replay's
+    for sub, mine in ((one, one), (s0, s0), (s1, s1)):
+        for other in (one, s0, s1):
+            hit = zenoh.KeyExpr(sub.transitions_all).intersects(zenoh.KeyExpr(other.transitions("a0")))
+            assert hit == (other is mine), (sub.transitions_all, other.transitions("a0"))
+    with pytest.raises(P.ProtocolError, match="replay_shard"):
+        P.Keys(RUN, P.MAX_REPLAY_SHARDS)
+
+
+def test_which_shard_a_replay_and_an_actor_take():
+    from zenrl.common.errors import ConfigError
+
+    assert P.replay_shard(None, 1) is None and P.replay_shard(0, 1) is None  # unsharded keys
+    assert P.replay_shard(2, 3) == 2
+    for bad, n in ((None, 2), (2, 2), (-1, 2), (1, 1)):
+        with pytest.raises(ConfigError, match="replay shard"):
+            P.replay_shard(bad, n)
+    assert P.actor_shard(5, 1) is None
+    assert [P.actor_shard(i, 3) for i in range(7)] == [0, 1, 2, 0, 1, 2, 0]  # slots fill the shards in turn
