@@ -296,3 +296,23 @@ def test_which_shard_a_replay_and_an_actor_take():
             P.replay_shard(bad, n)
     assert P.actor_shard(5, 1) is None
     assert [P.actor_shard(i, 3) for i in range(7)] == [0, 1, 2, 0, 1, 2, 0]  # slots fill the shards in turn
+
+
+def test_the_launcher_display_and_zenrl_status_show_each_shard():
+    from zenrl.launcher.display import Progress
+    from zenrl.launcher.status_client import _detail
+
+    p = Progress()
+    for sid, size in (("replay-0", 700), ("replay-1", 300)):
+        p.on_message("k", P.Stats(role="replay", id=sid, time=0.0,
+                                  values={"size": size, "capacity": 1000, "inserted_total": 2 * size,
+                                          "priority_mass": size / 10, "durable_degraded": False}).encode())
+    assert set(p.replays) == {"replay-0", "replay-1"} and p.replays["replay-1"]["size"] == 300
+    assert p.replay["size"] == 1000 and p.replay["capacity"] == 2000 and p.replay["shards"] == 2
+    assert p.status_line()["replay_size"] == 1000
+    row = {"role": "replay", "id": "replay-1", **p.replays["replay-1"]}
+    assert _detail(row, None).startswith("size 300 / 1,000, priority mass 30")
+    learner = {"role": "learner", "policy_lag": 2.0, "replay_shards_up": 1, "replay0_items": 1200, "replay1_items": 34,
+               "replay0_mass": 5.0, "replay1_mass": 0.0}
+    assert _detail(learner, None) == "policy lag 2.0; replay shards up 1/2, items drawn 0: 1,200, 1: 34"
+    assert _detail({"role": "learner", "policy_lag": 2.0}, None) == "policy lag 2.0"  # one replay: as before
