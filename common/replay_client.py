@@ -441,8 +441,8 @@ class ShardedReplayClient:
         return out[0]
 
     def refresh(self, timeout_s: float | None = None) -> None:
-        """Probe every shard now and wait (up to ``timeout_s``, default the query timeout) for
-        their answers."""
+        """Probe now every shard that is down or not heard from for ``refresh_s``, and wait (up
+        to ``timeout_s``, default the query timeout) for their answers."""
         with self._lock:
             for st in self.state:
                 st.probe_at = 0.0
