@@ -14,7 +14,11 @@ the same in-process Zenoh router, every other party a separate OS process:
 Both run at once for ``--duration`` s; over the window that leaves out the first and last 0.5 s,
 ``ingest`` is the transitions/s the replays inserted (summed over the shards, from their own
 ``inserted_total``) and ``sample`` the items/s the sampler got. Medians over the rounds of each
-set-up are compared: ``ingest_ratio`` = N shards / 1 shard, ``sample_ratio`` likewise.
+set-up are compared: ``ingest_ratio`` = N shards / 1 shard, ``sample_ratio`` likewise. Also
+over the window: the replay processes' CPU time (/proc) per 1k items inserted
+(``cpu_per_item_ratio``, N / 1: what sharding adds per item) and the busiest replay process's
+CPU / wall (``busiest_replay_cpu_fraction_*``: near 1, a replay process is its own bound; well
+below, the machine's cores are).
 
 Each shard is one process with its own interpreter, so shards add ingest capacity while CPU
 cores are free; on a 2-core machine every process shares the same two cores and the ratio shows
@@ -201,6 +205,13 @@ def one_round(procs: Procs, node: Any, endpoint: str, tmp: Path, shards: int, ar
     pubs = [procs.start(f"{run_id}-pub{p}", [__file__, "--role", "pub", "--slot", str(p), *common], capture=True)
             for p in range(args.publishers)]
     sampler = procs.start(f"{run_id}-sampler", [__file__, "--role", "sampler", *common], capture=True)
+    # the replays' CPU over the window (utime + stime from /proc): how the ingest work splits
+    lo, hi = start_at + EDGE_S, start_at + args.duration - EDGE_S
+    time.sleep(max(0.0, lo - time.time()))
+    cpu0 = [_cpu_s(p.pid) for p in mine]
+    time.sleep(max(0.0, hi - time.time()))
+    cpu1 = [_cpu_s(p.pid) for p in mine]
+    cpu = [b - a for a, b in zip(cpu0, cpu1)]
     outs = {}
     for name, p in [*((f"pub{i}", p) for i, p in enumerate(pubs)), ("sampler", sampler)]:
         out, _ = p.communicate(timeout=args.lead_s + args.duration + 120)
@@ -208,14 +219,29 @@ def one_round(procs: Procs, node: Any, endpoint: str, tmp: Path, shards: int, ar
             raise RuntimeError(f"{name} exited with {p.returncode}: {procs.log_text(f'{run_id}-{name}')[-2000:]}")
         outs[name] = json.loads(out.strip().splitlines()[-1])
     time.sleep(0.3)  # the replays' next stats, past the window's end
-    ingest, per = watch.rate(start_at + EDGE_S, start_at + args.duration - EDGE_S)
+    ingest, per = watch.rate(lo, hi)
     for p in mine:
         procs.stop(p)
     s = outs["sampler"]
+    wall = hi - lo
+    # CPU per 1k items inserted (all replay processes; sampling's share included) and the busiest
+    # replay process's CPU / wall: near 1.0 that process is its own bound, well below it the
+    # machine is (every process shares its cores)
+    cpu_per_k = sum(cpu) / max(ingest * wall, 1.0) * 1000
+    busiest = max(cpu) / wall
     log(f"  {shards} shard(s): ingest {ingest:,.0f} transitions/s {({k: round(v) for k, v in per.items()})}, "
-        f"sample {s['items_per_s']:,.0f} items/s (not ready {s['not_ready']}, timeouts {s['timeouts']})")
+        f"sample {s['items_per_s']:,.0f} items/s (not ready {s['not_ready']}, timeouts {s['timeouts']}); "
+        f"replay CPU {[round(c / wall, 2) for c in cpu]} of a core, {cpu_per_k * 1e3:.1f} ms per 1k items")
     return {"shards": shards, "ingest_items_per_s": ingest, "ingest_per_shard": per, "sample_items_per_s": s["items_per_s"],
-            "sampler": s, "published_chunks": sum(o["chunks"] for k, o in outs.items() if k != "sampler")}
+            "replay_cpu_ms_per_1k_items": cpu_per_k * 1e3, "replay_cpu_fraction_each": [c / wall for c in cpu],
+            "busiest_replay_cpu_fraction": busiest, "sampler": s,
+            "published_chunks": sum(o["chunks"] for k, o in outs.items() if k != "sampler")}
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) process ``pid`` has used, from /proc (Linux)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> int:
@@ -265,6 +291,11 @@ def main() -> int:
         many = [x for x in rounds if x["shards"] == args.shards]
         med = {k: {n: statistics.median(x[f"{k}_items_per_s"] for x in xs) for n, xs in ((1, one), (args.shards, many))}
                for k in ("ingest", "sample")}
+        cpu = {n: statistics.median(x["replay_cpu_ms_per_1k_items"] for x in xs) for n, xs in ((1, one), (args.shards, many))}
+        busy = {n: statistics.median(x["busiest_replay_cpu_fraction"] for x in xs) for n, xs in ((1, one), (args.shards, many))}
+        out.update({"replay_cpu_ms_per_1k_items_1": cpu[1], f"replay_cpu_ms_per_1k_items_{args.shards}": cpu[args.shards],
+                    "cpu_per_item_ratio": cpu[args.shards] / cpu[1],
+                    "busiest_replay_cpu_fraction_1": busy[1], f"busiest_replay_cpu_fraction_{args.shards}": busy[args.shards]})
         out.update({"ingest_items_per_s_1": med["ingest"][1], f"ingest_items_per_s_{args.shards}": med["ingest"][args.shards],
                     "sample_items_per_s_1": med["sample"][1], f"sample_items_per_s_{args.shards}": med["sample"][args.shards],
                     "ingest_ratio": med["ingest"][args.shards] / med["ingest"][1],
