@@ -86,3 +86,56 @@ def test_zenrl_run_apex_on_two_replay_shards(tmp_path):
         log = (run_dir / "logs" / f"replay-{k}.log").read_text()
         assert "replay log flushed" in log and "Traceback" not in log, log[-3000:]
     assert not zenrl_pids(run_id), zenrl_pids(run_id)
+
+
+def test_a_killed_shard_is_left_out_and_rejoins_when_it_is_back(router, run_id, procs):
+    """Two `zenrl replay --shard k` processes, a publisher each, the learner's sharded client in
+    this process: SIGKILL shard 1 and sampling goes on from shard 0 alone (the failure counted,
+    nothing raised but the one batch's error); start it again, refill it, and it is drawn from
+    again."""
+    from zenrl.common import protocol as P
+    from zenrl.common.errors import NotReady, RemoteTimeout
+    from zenrl.common.replay_client import ShardedReplayClient
+    from zenrl.common.transport import Node
+
+    def replay(k):
+        return procs.zenrl(f"replay{k}", ["replay", "--router", router, "--run-id", run_id, "--shard", str(k),
+                                          "--set", "replay.shards=2", "--set", "replay.min_size=200"])
+
+    def publish(k, seed):
+        return procs.start(f"pub{k}-{seed}", ["tests/integration/procs.py", "publish", "--router", router, "--run", run_id,
+                                              "--actor", f"a{k}", "--shard", str(k), "--chunks", "20", "--chunk", "50",
+                                              "--seed", str(seed), "--plain"])
+
+    replays = [replay(0), replay(1)]
+    pubs = [publish(0, 1), publish(1, 2)]
+    with Node(router, 10.0) as node:
+        client = ShardedReplayClient(node, run_id, 2, "learner", timeout_s=2.0, seed=0)
+
+        def draw():
+            try:
+                return client.sample(64, 0.5)
+            except (NotReady, RemoteTimeout):
+                return None
+
+        def batch_from(shards):
+            s = draw()
+            return s if s is not None and set(client.shard_of(s.keys)[0].tolist()) == shards else None
+
+        assert all(p.wait(timeout=60) == 0 for p in pubs)
+        wait_until(lambda: batch_from({0, 1}), 60, "a batch drawn from both shards")
+        replays[1].kill()
+        replays[1].wait(timeout=10)
+        # the shard's failure costs batches (counted), never an exception other than the batch's own
+        wait_until(lambda: batch_from({0}), 30, "batches from shard 0 alone")
+        for _ in range(10):
+            s = client.sample(64, 0.5)
+            assert set(client.shard_of(s.keys)[0].tolist()) == {0}
+        v = client.values()
+        assert v["replay_shards_up"] == 1 and v["replay1_up"] == 0
+        assert client.state[1].reason.startswith("RemoteTimeout"), client.state[1].reason  # why it is out
+        replays[1] = replay(1)
+        assert publish(1, 3).wait(timeout=60) == 0
+        wait_until(lambda: batch_from({0, 1}), 60, "shard 1 drawn from again")
+        assert client.values()["replay_shards_up"] == 2
+        assert all(p.poll() is None for p in (replays[0], replays[1]))
