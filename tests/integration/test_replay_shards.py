@@ -4,7 +4,8 @@ and the evaluator as OS processes. Actor slot i writes to shard i % 2, so each s
 actor's chunks; the learner samples both by their priority mass and sends each item's new
 priority back to its own shard. While it runs `zenrl status` lists both shards and the learner's
 draws from each; with the update budget of the unsharded e2e test the greedy eval return must
-rise as high, and everything must stop cleanly."""
+rise as high, and everything must stop cleanly. A second test kills one shard's process under a
+learner's client and starts it again."""
 
 import json
 import subprocess
