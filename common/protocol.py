@@ -80,8 +80,11 @@ def replay_shard(shard: int | None, shards: int) -> int | None:
     0), else ``shard``, which must then be given and be in 0..shards-1 (ConfigError naming it)."""
     if shards == 1 and shard in (None, 0):
         return None
+    if shard is None:
+        raise ConfigError(f"replay.shards={shards}: give this replay its shard, 0..{shards - 1} "
+                          "(zenrl replay --shard K, or ZENRL_REPLAY_SHARD)")
     if type(shard) is not int or not 0 <= shard < shards:
-        raise ConfigError(f"replay shard {shard!r} must be given and be in 0..{shards - 1} (replay.shards={shards})")
+        raise ConfigError(f"replay shard {shard!r} is not in 0..{shards - 1} (replay.shards={shards})")
     return shard
 
 

@@ -256,6 +256,7 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "
     """Entry point of ``zenrl replay``: build, run in the role loop until ``stop``, close the
     session. ``shard``: this service's shard of ``replay.shards``. Raises
     :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
+    P.replay_shard(shard, cfg.replay.shards)  # a shard number that does not fit: ConfigError before connecting
     with Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg)) as node:
         svc = ReplayService(cfg, node, run_id, service_id, stop, shard)
         # idle waits no longer than the stats interval, so that a short one is kept

@@ -291,9 +291,11 @@ def test_which_shard_a_replay_and_an_actor_take():
 
     assert P.replay_shard(None, 1) is None and P.replay_shard(0, 1) is None  # unsharded keys
     assert P.replay_shard(2, 3) == 2
-    for bad, n in ((None, 2), (2, 2), (-1, 2), (1, 1)):
-        with pytest.raises(ConfigError, match="replay shard"):
+    for bad, n in ((2, 2), (-1, 2), (1, 1)):
+        with pytest.raises(ConfigError, match=f"replay shard {bad} is not in 0..{n - 1}"):
             P.replay_shard(bad, n)
+    with pytest.raises(ConfigError, match="replay.shards=2: give this replay its shard"):
+        P.replay_shard(None, 2)
     assert P.actor_shard(5, 1) is None
     assert [P.actor_shard(i, 3) for i in range(7)] == [0, 1, 2, 0, 1, 2, 0]  # slots fill the shards in turn
 
