@@ -18,7 +18,8 @@ set-up are compared: ``ingest_ratio`` = N shards / 1 shard, ``sample_ratio`` lik
 over the window: the replay processes' CPU time (/proc) per 1k items inserted
 (``cpu_per_item_ratio``, N / 1: what sharding adds per item) and the busiest replay process's
 CPU / wall (``busiest_replay_cpu_fraction_*``: near 1, a replay process is its own bound; well
-below, the machine's cores are).
+below, the machine's cores are). And in process, the learner's CPU per batch of 128 to decode
+one replay's reply vs N replies and combine them (``client_cost_ratio``).
 
 Each shard is one process with its own interpreter, so shards add ingest capacity while CPU
 cores are free; on a 2-core machine every process shares the same two cores and the ratio shows
@@ -48,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import Procs, ab_cpu_us, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 CHUNK = 256
 SAMPLE_BATCH = 128
@@ -238,6 +239,38 @@ def one_round(procs: Procs, node: Any, endpoint: str, tmp: Path, shards: int, ar
             "published_chunks": sum(o["chunks"] for k, o in outs.items() if k != "sampler")}
 
 
+def client_cost(shards: int, rounds: int = 5, round_s: float = 0.3) -> dict[str, float]:
+    """The learner's CPU per batch of SAMPLE_BATCH CartPole items, in process: decoding one
+    replay's reply vs ``shards`` replies of a share each plus the sharded client's combine
+    (keys, global probabilities, IS weights, concatenated data)."""
+    from zenrl.common import protocol as P
+    from zenrl.common.replay_client import ShardedReplayClient, ZenohReplayClient
+
+    rng = np.random.default_rng(0)
+
+    def reply(n: int) -> bytes:
+        b, _ = _chunks(n, 1)[0]
+        data = {k: v[:n] for k, v in b.items()}
+        data["meta/policy_version"] = np.zeros(n, np.int64)
+        return P.SampleReply(request_id=1, status="ok", replay_size=100_000, keys=rng.integers(0, 1 << 20, n),
+                             probabilities=rng.random(n) * 1e-5 + 1e-6, weights=np.ones(n, np.float32), data=data,
+                             mass=1000.0).encode()
+
+    one = ZenohReplayClient(None, P.Keys("bench"))  # type: ignore[arg-type]  (decoding only: no node used)
+    many = ShardedReplayClient(None, "bench", shards)  # type: ignore[arg-type]
+    whole = reply(SAMPLE_BATCH)
+    parts = [reply(SAMPLE_BATCH // shards) for _ in range(shards)]
+    q = 1.0 / shards
+
+    def sharded(_: int) -> None:
+        got = [(k, q, one.parse_reply(p)) for k, p in enumerate(parts)]
+        many.combine(got, 0.4)
+
+    us = ab_cpu_us({"one": lambda _: one.parse_reply(whole), "sharded": sharded}, rounds, round_s)
+    return {"client_us_per_batch_1": us["one"], f"client_us_per_batch_{shards}": us["sharded"],
+            "client_cost_ratio": us["sharded"] / us["one"]}
+
+
 def _cpu_s(pid: int) -> float:
     """CPU seconds (user + system) process ``pid`` has used, from /proc (Linux)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -283,6 +316,9 @@ def main() -> int:
     rounds: list[dict[str, Any]] = []
     try:
         node = Node(endpoint, 20.0)
+        out.update(client_cost(args.shards))
+        log(f"learner's CPU per batch of {SAMPLE_BATCH}: one replay {out['client_us_per_batch_1']:.0f} us, "
+            f"{args.shards} shards {out[f'client_us_per_batch_{args.shards}']:.0f} us")
         for r in range(args.rounds):
             for n in ((1, args.shards) if r % 2 == 0 else (args.shards, 1)):  # the order alternates
                 log(f"round {r + 1}/{args.rounds}, {n} shard(s)")
