@@ -66,7 +66,9 @@ class ApexActor(ActorWorker):
             eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         policy = EpsilonGreedyQ(net, eps, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1)))
         weights = WeightsFollower(node, keys, net, cfg.transport.max_message_bytes)
-        self.replay = ZenohReplayClient(node, keys, actor_id, cfg.transport.query_timeout_s,
+        # a sharded replay: this actor's chunks go to shard slot % replay.shards, for its life
+        self.replay = ZenohReplayClient(node, P.Keys(run_id, P.actor_shard(slot, cfg.replay.shards)), actor_id,
+                                        cfg.transport.query_timeout_s,
                                         cfg.transport.max_message_bytes, acfg.backlog_chunks,
                                         None if acfg.compress == "none" else acfg.compress)
         image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in spec.values())

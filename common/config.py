@@ -19,7 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from zenrl.common.errors import ConfigError
-from zenrl.common.protocol import MAX_SAMPLE_BATCH
+from zenrl.common.protocol import MAX_REPLAY_SHARDS, MAX_SAMPLE_BATCH
 
 ENV_PREFIX = "ZENRL__"
 
@@ -77,7 +77,7 @@ class ReplayConfig(_Section):
     max_chunk_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Largest encoded chunk the replay takes (a larger one is refused unread, reason size; its session's Zenoh receive cap is twice this, so a larger message is dropped as its fragments arrive): far above any shipped config's chunk (an 84x84x4 Atari chunk of 64 transitions is ~0.5 MB), and independent of transport.max_message_bytes, which also bounds the sample replies the replay sends. With queue_max_bytes and max_decoded_bytes it bounds what a barrage adds to the replay's memory (docs/architecture.md).")
     max_decoded_bytes: int = Field(16 * 1024 * 1024, ge=1024, description="Most bytes the compressed arrays of one chunk may declare (checked before decompressing; the spec's shape for each field is checked too), and the decoded bytes the ingest thread holds at once before it inserts.")
     durable: bool = Field(False, description="Keep an append-only log of inserted chunks and priority snapshots so the contents survive a crash.")
-    log_dir: Optional[str] = Field(None, description="Directory of the durable log (default: <runs_dir>/<run_id>/replay).")
+    log_dir: Optional[str] = Field(None, description="Directory of the durable log (default: <runs_dir>/<run_id>/replay); with shards > 1 each shard keeps its log in a folder shard-<k> under it.")
     flush_interval_s: float = Field(1.0, gt=0, description="fsync the durable log at most this often (the loss window after a crash).")
     snapshot_interval_s: float = Field(10.0, gt=0, description="Write a priority snapshot this often.")
     segment_items: Optional[int] = Field(None, ge=1, description="Items per log segment (default capacity / 8); whole segments are deleted once overwritten.")
@@ -91,6 +91,7 @@ class ReplayConfig(_Section):
     quarantine_rejections: int = Field(20, ge=0, description="A source (the actor id in the key) with this many rejected chunks within quarantine_window_s has its traffic dropped for quarantine_s; 0 turns quarantine off.")
     quarantine_window_s: float = Field(10.0, gt=0, description="Window over which a source's rejected chunks are counted for quarantine.")
     quarantine_s: float = Field(60.0, gt=0, description="How long a quarantined source's chunks are dropped unread.")
+    shards: int = Field(1, ge=1, le=MAX_REPLAY_SHARDS, description="Replay services in the run (`zenrl replay --shard k`, k in 0..shards-1): actor slot i writes to shard i % shards, the learner samples across shards in proportion to each one's total priority (docs/architecture.md). capacity, max_bytes, min_size and samples_per_insert apply to each shard. 1: one replay on the unsharded keys.")
 
 
 class ActorConfig(_Section):

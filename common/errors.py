@@ -32,7 +32,14 @@ class RemoteTimeout(TransportError):
 
 
 class NotReady(ZenrlError):
-    """The replay service is not ready to serve samples (too few items, or rate limited)."""
+    """The replay service is not ready to serve samples (too few items, or rate limited).
+    ``mass`` and ``size``: the replay's priority mass and size its not-ready reply reported
+    (None when unknown)."""
+
+    def __init__(self, *args: object, mass: float | None = None, size: int | None = None) -> None:
+        super().__init__(*args)
+        self.mass = mass
+        self.size = size
 
 
 class CheckpointError(ZenrlError):

@@ -33,7 +33,7 @@ import lz4.block
 import msgpack
 import numpy as np
 
-from zenrl.common.errors import ProtocolError
+from zenrl.common.errors import ConfigError, ProtocolError
 from zenrl.common.specs import ALLOWED_DTYPES
 
 PROTOCOL_VERSION = 1
@@ -46,6 +46,8 @@ MAX_FIELDS = 256
 MAX_NDIM = 8
 #: Most items one SampleRequest may ask for.
 MAX_SAMPLE_BATCH = 65536
+#: Most replay shards a run may have (``replay.shards``).
+MAX_REPLAY_SHARDS = 64
 #: Range of every integer field (schema kinds "int" and "uint"): a signed int64 (int63 for
 #: "uint"), so that any integer the protocol admits fits the numpy columns it may end up in.
 INT64_MIN, INT64_MAX = -(1 << 63), (1 << 63) - 1
@@ -72,6 +74,27 @@ def check_name(what: str, name: str) -> str:
     return name
 
 
+def replay_shard(shard: int | None, shards: int) -> int | None:
+    """The ``replay_shard`` of :class:`Keys` for a replay service of shard ``shard`` (None or an
+    int) in a run of ``shards`` (``replay.shards``): None for an unsharded run (``shard`` None or
+    0), else ``shard``, which must then be given and be in 0..shards-1 (ConfigError naming it)."""
+    if shards == 1 and shard in (None, 0):
+        return None
+    if shard is None:
+        raise ConfigError(f"replay.shards={shards}: give this replay its shard, 0..{shards - 1} "
+                          "(zenrl replay --shard K, or ZENRL_REPLAY_SHARD)")
+    if type(shard) is not int or not 0 <= shard < shards:
+        raise ConfigError(f"replay shard {shard!r} is not in 0..{shards - 1} (replay.shards={shards})")
+    return shard
+
+
+def actor_shard(slot: int, shards: int) -> int | None:
+    """The replay shard an actor of exploration slot ``slot`` writes to: ``slot % shards`` (None
+    for an unsharded run). Elastic actors claim the lowest free slots, so they spread over the
+    shards evenly as they join; an actor keeps its shard for its life."""
+    return None if shards == 1 else int(slot) % shards
+
+
 class Keys:
     """Key expressions of one run: everything lives under ``zenrl/<run>/``.
 
@@ -92,26 +115,36 @@ class Keys:
     ``slots/<k>/<actor>``            liveliness   (token)                   actor owning slot k
     ``quarantine/<actor>``           liveliness   (token)                   replay, while it drops <actor>
     ===============================  ===========  =========================================
+
+    Sharded replay (``replay.shards`` = N > 1): ``Keys(run, replay_shard=k)`` names shard k's
+    keys ``transitions/<k>/<actor>``, ``replay/<k>/sample`` and ``replay/<k>/priorities`` (k in
+    0..N-1; one segment more than the unsharded keys, so no shard's subscription matches
+    another's). ``replay_shard=None`` (N = 1) keeps the keys above; every other key is the same.
     """
 
-    def __init__(self, run_id: str) -> None:
+    def __init__(self, run_id: str, replay_shard: int | None = None) -> None:
         self.run_id = check_name("run_id", run_id)
         self.prefix = f"zenrl/{run_id}"
+        if replay_shard is not None and (type(replay_shard) is not int or not 0 <= replay_shard < MAX_REPLAY_SHARDS):
+            raise ProtocolError("replay_shard", f"{replay_shard!r} must be an integer in 0..{MAX_REPLAY_SHARDS - 1}", "field")
+        #: the replay shard these keys address (None: the unsharded replay)
+        self.replay_shard = replay_shard
+        self._shard = "" if replay_shard is None else f"/{replay_shard}"
 
     def transitions(self, actor_id: str) -> str:
-        return f"{self.prefix}/transitions/{check_name('actor_id', actor_id)}"
+        return f"{self.prefix}/transitions{self._shard}/{check_name('actor_id', actor_id)}"
 
     @property
     def transitions_all(self) -> str:
-        return f"{self.prefix}/transitions/*"
+        return f"{self.prefix}/transitions{self._shard}/*"
 
     @property
     def sample(self) -> str:
-        return f"{self.prefix}/replay/sample"
+        return f"{self.prefix}/replay{self._shard}/sample"
 
     @property
     def priorities(self) -> str:
-        return f"{self.prefix}/replay/priorities"
+        return f"{self.prefix}/replay{self._shard}/priorities"
 
     @property
     def weights(self) -> str:
@@ -728,13 +761,20 @@ class SampleRequest(Message):
 class SampleReply(Message):
     """Replay -> learner (query reply). ``status`` is ``"ok"`` (then ``keys`` int64[B],
     ``probabilities`` float64[B], ``weights`` float32[B] and ``data`` are set) or ``"not_ready"``
-    (then ``reason`` says why, e.g. ``"min_size 1000 > size 12"``)."""
+    (then ``reason`` says why, e.g. ``"min_size 1000 > size 12"``).
+
+    ``mass`` (optional, a finite float >= 0, in both kinds of reply): the replay's total
+    priority mass when it answered, ``sum_i (p_i + eps) ** alpha`` over the items it may sample
+    (the live item count in uniform mode), so that ``probabilities`` are ``leaf / mass``; with
+    ``replay_size`` it is what a learner sampling across replay shards weighs each shard by
+    (:class:`~zenrl.common.replay_client.ShardedReplayClient`). Left out by replays that predate it."""
 
     TYPE: ClassVar[str] = "sample_reply"
     SCHEMA: ClassVar[dict[str, str]] = {"request_id": "uint", "status": "str", "reason": "str",
                                         "replay_size": "uint", "keys": "array?",
                                         "probabilities": "array?", "weights": "array?",
-                                        "data": "arrays?"}
+                                        "data": "arrays?", "mass": "float?"}
+    OMIT_NONE: ClassVar[frozenset[str]] = frozenset({"mass"})
     request_id: int
     status: str
     reason: str = ""
@@ -743,10 +783,13 @@ class SampleReply(Message):
     probabilities: np.ndarray | None = None
     weights: np.ndarray | None = None
     data: dict[str, np.ndarray] | None = None
+    mass: float | None = None
 
     def _validate(self) -> None:
         if self.status not in ("ok", "not_ready"):
             raise ProtocolError("status", f"{self.status!r} is not ok or not_ready", "field")
+        if self.mass is not None and not self.mass >= 0.0:
+            raise ProtocolError("mass", f"{self.mass!r} must be >= 0", "negative")
         if self.status == "ok":
             if self.keys is None or self.probabilities is None or self.weights is None or self.data is None:
                 raise ProtocolError("keys", "an ok reply needs keys, probabilities, weights and data", "field")

@@ -11,11 +11,12 @@ from __future__ import annotations
 import collections
 import itertools
 import logging
+import math
 import queue
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Union
 
 import numpy as np
 
@@ -31,7 +32,8 @@ log = logging.getLogger(__name__)
 class Sampled:
     """A sampled batch. keys int64[B], probabilities float64[B], weights float32[B] (IS weights
     normalised by their max), data ``{name: array[B, ...]}``; ``replay_size`` at sampling time.
-    ``prepared``: what :class:`SamplePrefetcher`'s ``prepare`` made of it (e.g. tensors), if any."""
+    ``prepared``: what :class:`SamplePrefetcher`'s ``prepare`` made of it (e.g. tensors), if any.
+    ``mass``: the replay's priority mass its reply reported (None if it did not)."""
 
     keys: np.ndarray
     probabilities: np.ndarray
@@ -39,6 +41,11 @@ class Sampled:
     data: dict[str, np.ndarray]
     replay_size: int
     prepared: Any = None
+    mass: float | None = None
+
+
+#: what a sample request ends in: a batch, or why there is none
+SampleResult = Union[Sampled, NotReady, RemoteTimeout, ProtocolError]
 
 
 class ZenohReplayClient:
@@ -146,12 +153,28 @@ class ZenohReplayClient:
         """Decode a sample reply; raise :class:`NotReady` for a not-ready answer."""
         rep = P.SampleReply.decode(payload, self.max_bytes)
         if rep.status != "ok":
-            raise NotReady(rep.reason)
-        return Sampled(rep.keys, rep.probabilities, rep.weights, rep.data, rep.replay_size)
+            raise NotReady(rep.reason, mass=rep.mass, size=rep.replay_size)
+        return Sampled(rep.keys, rep.probabilities, rep.weights, rep.data, rep.replay_size, mass=rep.mass)
 
     def sample(self, batch_size: int, beta: float) -> Sampled:
         """Blocking sample; raises :class:`NotReady` or :class:`RemoteTimeout`."""
         return self.parse_reply(self.node.query(self.keys.sample, self.request_payload(batch_size, beta), self.timeout_s))
+
+    def sample_async(self, batch_size: int, beta: float, on_done: Callable[[SampleResult], None]) -> None:
+        """Send a sample request without waiting; ``on_done`` is called once, on a Zenoh thread,
+        with the :class:`Sampled` batch or the error (:class:`NotReady`, :class:`RemoteTimeout`,
+        :class:`ProtocolError`). Raises only if the request cannot be sent (session closing)."""
+        def reply(payload: bytes | None) -> None:
+            if payload is None:
+                on_done(RemoteTimeout(f"no sample reply on {self.keys.sample} within {self.timeout_s} s"))
+                return
+            try:
+                result: SampleResult = self.parse_reply(payload)
+            except (NotReady, ProtocolError) as e:
+                result = e
+            on_done(result)
+
+        self.node.query_async(self.keys.sample, self.request_payload(batch_size, beta), self.timeout_s, reply)
 
 
 class SamplePrefetcher:
@@ -187,7 +210,7 @@ class SamplePrefetcher:
     #: how long one round of the helper thread waits for a retry to be due (its idle heartbeat)
     IDLE_WAIT_S = 0.5
 
-    def __init__(self, client: ZenohReplayClient, batch_size: int, beta_fn, in_flight: int = 4,
+    def __init__(self, client: "ZenohReplayClient | ShardedReplayClient", batch_size: int, beta_fn, in_flight: int = 4,
                  prepare: Callable[[Sampled], Any] | None = None, backoff_s: float = 0.05,
                  batches_per_request: int = 1, seed: int | None = None) -> None:
         if batches_per_request < 1 or batch_size * batches_per_request > P.MAX_SAMPLE_BATCH:
@@ -234,9 +257,7 @@ class SamplePrefetcher:
         if self._stop.is_set():
             return
         try:
-            self.client.node.query_async(self.client.keys.sample,
-                                         self.client.request_payload(self.batch_size * self.per_request, self.beta_fn()),
-                                         self.client.timeout_s, self._on_reply)
+            self.client.sample_async(self.batch_size * self.per_request, self.beta_fn(), self._on_result)
         except Exception as e:  # zenoh.ZError (session closing): counted, retried after the backoff
             self.errors += 1
             log.warning("could not send a sample request: %s", e)
@@ -260,22 +281,20 @@ class SamplePrefetcher:
         for _ in range(n):
             self._issue()
 
-    def _on_reply(self, payload: bytes | None) -> None:
-        # Runs on a Zenoh thread: never block here, never call into Zenoh.
-        if payload is None:
+    def _on_result(self, s: SampleResult) -> None:
+        # Runs on a Zenoh thread (or the issuing one): never block here, never call into Zenoh.
+        if isinstance(s, RemoteTimeout):
             self.timeouts += 1
             self._failed()
             return
-        try:
-            s = self.client.parse_reply(payload)
-        except NotReady as e:
+        if isinstance(s, NotReady):
             self.not_ready += 1
-            self.last_not_ready_reason = str(e)
+            self.last_not_ready_reason = str(s)
             self._failed()
             return
-        except ProtocolError as e:
+        if isinstance(s, Exception):
             self.errors += 1
-            log.warning("bad sample reply: %s", e)
+            log.warning("bad sample reply: %s", s)
             self._failed()
             return
         try:
@@ -287,6 +306,7 @@ class SamplePrefetcher:
             log.warning("could not prepare a sampled batch: %s", e)
             self._failed()
             return
+        self.last_not_ready_reason = ""  # served again: a reason from before would mislead
         for part in parts:
             self._ready.put_nowait(part)
 
@@ -313,4 +333,286 @@ class SamplePrefetcher:
         return s
 
 
-__all__ = ["Sampled", "ZenohReplayClient", "SamplePrefetcher", "RemoteTimeout", "NotReady"]
+@dataclass
+class ShardState:
+    """What the learner knows of one replay shard: its priority ``mass`` and ``size`` from its
+    latest reply (either kind), whether it is ``up`` (its latest reply was ok), when it was last
+    heard from and when it is probed next; and counters."""
+
+    mass: float = 0.0
+    size: int = 0
+    up: bool = False
+    heard_at: float = -math.inf
+    probe_at: float = 0.0
+    probing: bool = False
+    reason: str = "not heard from yet"
+    items: int = 0  #: items of this shard in batches handed out
+    failed: int = 0  #: parts answered not ready, timed out or malformed (each drops its batch)
+    probes: int = 0
+    priority_keys: int = 0  #: keys whose priorities were sent back to it
+
+
+class ShardedReplayClient:
+    """The learner's client of a sharded replay (``replay.shards`` = N > 1): samples across the
+    shards so that a batch is distributed as one replay holding every shard's items would draw it.
+
+    Per batch of B: the per-shard counts are drawn ``c ~ Multinomial(B, q)``, with ``q_k = S_k /
+    sum_j S_j`` over the shards that are up (``S_k``: shard k's priority mass from its latest
+    reply, :attr:`~zenrl.common.protocol.SampleReply.mass`), and shard k is asked for ``c_k`` items,
+    all concurrently. An item's probability is then rescaled to the global one, ``P(i) =
+    P_k(i) * q_k``, i.e. ``(p_i + eps)^alpha / sum_j S_j`` (its expected count is ``B * q_k *
+    P_k(i)``, as in one replay), and the IS weights are ``(N P(i))^-beta`` normalised by their max
+    over the whole batch (``N`` = the shards' total size; it cancels in the normalisation), as
+    :meth:`~zenrl.replay.buffer.InMemoryReplay.sample` does within one replay.
+
+    Keys: shard k's key ``x`` is handed out as ``x * N + k``, so a batch's keys stay distinct
+    and :meth:`update_priorities` sends each priority (and poisoned key) back to the shard its
+    item came from, as that shard's key.
+
+    A shard that answers not ready (empty, below ``replay.min_size``, rate limited), times out
+    or answers garbage is marked down and counted (:class:`ShardState`); the batch it was part of
+    is dropped (``on_done`` gets the error, the prefetcher retries after its backoff) and later
+    batches are drawn from the other shards alone. A shard not up is probed every
+    ``probe_s`` (a 1-item request), and one up but not heard from for ``refresh_s`` too (its
+    mass would go stale while it draws no items): a probe's reply brings it back. With no
+    shard up, a request fails at once with :class:`NotReady` naming each shard's reason.
+    Probes are sent from the requesting thread (never from a Zenoh callback)."""
+
+    def __init__(self, node: Node, run_id: str, shards: int, client_id: str = "client", timeout_s: float = 5.0,
+                 max_message_bytes: int = P.DEFAULT_MAX_MESSAGE_BYTES, seed: int | None = None,
+                 probe_s: float = 0.25, refresh_s: float = 1.0) -> None:
+        if not 2 <= shards <= P.MAX_REPLAY_SHARDS:
+            raise ValueError(f"shards={shards}: a sharded replay has 2..{P.MAX_REPLAY_SHARDS} shards")
+        self.node = node
+        self.n = shards
+        self.timeout_s = timeout_s
+        self.clients = [ZenohReplayClient(node, P.Keys(run_id, k), client_id, timeout_s, max_message_bytes)
+                        for k in range(shards)]
+        self.state = [ShardState() for _ in range(shards)]
+        self.probe_s, self.refresh_s = probe_s, refresh_s
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self._heard = threading.Condition(self._lock)
+        #: batches dropped because one of their parts failed, and the items they held
+        self.dropped_batches = 0
+        self.dropped_items = 0
+
+    # -- sampling ----------------------------------------------------------------------------
+    def draw(self, batch_size: int) -> tuple[list[int], np.ndarray, np.ndarray] | str:
+        """The shards up, their share ``q`` (float64[U]) and item counts (int64[U], summing to
+        ``batch_size``) for one batch; or why no shard can serve."""
+        with self._lock:
+            up = [k for k, st in enumerate(self.state) if st.up and st.mass > 0.0]
+            if not up:
+                return "no replay shard ready: " + "; ".join(f"shard {k}: {st.reason}" for k, st in enumerate(self.state))
+            mass = np.array([self.state[k].mass for k in up], np.float64)
+            q = mass / mass.sum()
+            counts = self._rng.multinomial(batch_size, q)
+        return up, q, counts
+
+    def sample_async(self, batch_size: int, beta: float, on_done: Callable[[SampleResult], None]) -> None:
+        """As :meth:`ZenohReplayClient.sample_async`, across the shards (see the class)."""
+        self._probe_due()
+        d = self.draw(batch_size)
+        if isinstance(d, str):
+            on_done(NotReady(d))
+            return
+        up, q, counts = d
+        parts = [(k, float(qk), int(c)) for k, qk, c in zip(up, q, counts) if c]
+        g = _Gather(self, parts, beta, on_done)
+        for k, _, c in parts:
+            try:
+                self.clients[k].sample_async(c, beta, lambda r, k=k: g.part(k, r))
+            except Exception as e:  # zenoh.ZError (session closing): this part fails, the batch with it
+                g.part(k, RemoteTimeout(f"could not ask replay shard {k}: {e}"))
+
+    def sample(self, batch_size: int, beta: float) -> Sampled:
+        """Blocking sample (probes every shard first if none is known to be up); raises
+        :class:`NotReady`, :class:`RemoteTimeout` or :class:`ProtocolError`."""
+        if not any(st.up for st in self.state):
+            self.refresh()
+        done = threading.Event()
+        out: list[SampleResult] = []
+        self.sample_async(batch_size, beta, lambda r: (out.append(r), done.set()))
+        if not done.wait(self.timeout_s + 1.0):
+            raise RemoteTimeout(f"no sample from the replay shards within {self.timeout_s} s")
+        if isinstance(out[0], Exception):
+            raise out[0]
+        return out[0]
+
+    def refresh(self, timeout_s: float | None = None) -> None:
+        """Probe now every shard that is down or not heard from for ``refresh_s``, and wait (up
+        to ``timeout_s``, default the query timeout) for their answers."""
+        with self._lock:
+            for st in self.state:
+                st.probe_at = 0.0
+        self._probe_due(force=True)
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        with self._heard:
+            while any(st.probing for st in self.state):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._heard.wait(left)
+
+    def _probe_due(self, force: bool = False) -> None:
+        now = time.monotonic()
+        due = []
+        with self._lock:
+            for k, st in enumerate(self.state):
+                stale = not st.up or now - st.heard_at >= self.refresh_s
+                if not st.probing and stale and (force or now >= st.probe_at):
+                    st.probing, st.probe_at = True, now + self.probe_s
+                    st.probes += 1
+                    due.append(k)
+        for k in due:
+            try:
+                self.clients[k].sample_async(1, 0.0, lambda r, k=k: self._probed(k, r))
+            except Exception as e:  # session closing: counted as the probe's failure
+                self._probed(k, RemoteTimeout(f"could not probe replay shard {k}: {e}"))
+
+    def _probed(self, k: int, r: SampleResult) -> None:
+        self.heard(k, r)
+        with self._heard:
+            self.state[k].probing = False
+            self._heard.notify_all()
+
+    def heard(self, k: int, r: SampleResult) -> None:
+        """Record shard ``k``'s answer: up with the mass and size an ok reply reported, or down
+        with the reason (an error; a not-ready reply's mass and size are kept)."""
+        with self._lock:
+            st = self.state[k]
+            if isinstance(r, Sampled) and r.mass is None:
+                st.up, st.reason = False, "its replies carry no priority mass (a replay older than sharding)"
+            elif isinstance(r, Sampled):
+                st.up, st.reason, st.heard_at = True, "ok", time.monotonic()
+                st.mass, st.size = float(r.mass), int(r.replay_size)
+            else:
+                st.up, st.reason = False, f"{type(r).__name__}: {r}"
+                if isinstance(r, NotReady):
+                    st.heard_at = time.monotonic()
+                    if r.mass is not None:
+                        st.mass, st.size = r.mass, r.size
+
+    def combine(self, parts: list[tuple[int, float, Sampled]], beta: float) -> Sampled:
+        """One batch of the shards' ``parts`` ``(shard, q_k, its sample)``: keys as ``key * N +
+        shard``, probabilities global (``P_k(i) * q_k``), IS weights over the whole batch."""
+        n = self.n
+        fields = parts[0][2].data.keys()
+        for k, _, s in parts:
+            if s.data.keys() != fields:
+                raise ProtocolError("data", f"replay shard {k} sent fields {sorted(s.data)}, another "
+                                    f"{sorted(fields)}: the shards disagree on the item spec", "field")
+            if s.keys.size and (int(s.keys.min()) < 0 or int(s.keys.max()) > (P.INT64_MAX - k) // n):
+                raise ProtocolError("keys", f"replay shard {k} sent keys outside 0..{P.INT64_MAX // n}", "field")
+        keys = np.concatenate([s.keys.astype(np.int64) * n + k for k, _, s in parts])
+        probs = np.concatenate([s.probabilities.astype(np.float64) * qk for _, qk, s in parts])
+        if beta == 0.0 or not probs.size:
+            weights = np.ones(probs.shape[0], np.float32)
+        else:
+            # (N P_i)^-beta / max_j (N P_j)^-beta = (min_j P_j / P_i)^beta, as within one replay
+            with np.errstate(divide="ignore", invalid="ignore"):
+                weights = np.power(probs.min() / probs, beta)
+            if not np.isfinite(weights).all():
+                raise ProtocolError("probabilities", "a replay shard sent a probability of 0 or a non-finite one",
+                                    "nonfinite")
+            weights = weights.astype(np.float32)
+        try:
+            data = {f: np.concatenate([s.data[f] for _, _, s in parts]) for f in fields}
+        except ValueError as e:  # shapes or dtypes that do not stack
+            raise ProtocolError("data", f"the replay shards' items do not stack: {e}", "shape") from None
+        with self._lock:
+            size = sum(st.size for st in self.state if st.up)
+            for k, _, s in parts:
+                self.state[k].items += len(s.keys)
+        return Sampled(keys, probs, weights, data, size)
+
+    # -- priorities --------------------------------------------------------------------------
+    def shard_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Global keys int64[K] -> (shard int64[K], the shard's key int64[K])."""
+        k = np.asarray(keys, np.int64)
+        return k % self.n, k // self.n
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray, poisoned: np.ndarray | None = None) -> None:
+        """Send each priority (keys int64[B] as handed out, priorities float32[B]) and poisoned
+        key (int64[P] or None) back to the shard its item came from, one message per shard
+        concerned."""
+        shard, local = self.shard_of(keys)
+        prio = np.asarray(priorities, np.float32)
+        bad_shard, bad_local = (self.shard_of(poisoned) if poisoned is not None
+                                else (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+        for k in np.union1d(np.unique(shard), np.unique(bad_shard)).tolist():
+            sel, bsel = shard == k, bad_shard == k
+            self.clients[k].update_priorities(local[sel], prio[sel], bad_local[bsel] if bsel.any() else None)
+            with self._lock:
+                self.state[k].priority_keys += int(sel.sum())
+
+    # -- stats -------------------------------------------------------------------------------
+    def values(self) -> dict[str, Any]:
+        """The learner's stats of the shards: ``replay_shards_up``, dropped batches, and per
+        shard k ``replay<k>_mass``, ``_size``, ``_up``, ``_items``, ``_failed``, ``_priority_keys``."""
+        with self._lock:
+            v: dict[str, Any] = {"replay_shards_up": sum(st.up for st in self.state),
+                                 "replay_dropped_batches": self.dropped_batches,
+                                 "replay_dropped_items": self.dropped_items}
+            for k, st in enumerate(self.state):
+                v.update({f"replay{k}_mass": st.mass, f"replay{k}_size": st.size, f"replay{k}_up": int(st.up),
+                          f"replay{k}_items": st.items, f"replay{k}_failed": st.failed,
+                          f"replay{k}_priority_keys": st.priority_keys})
+        return v
+
+
+class _Gather:
+    """One sharded batch being assembled: the parts' answers arrive on Zenoh threads; the last
+    one combines them and calls ``on_done`` (once)."""
+
+    def __init__(self, client: ShardedReplayClient, parts: list[tuple[int, float, int]], beta: float,
+                 on_done: Callable[[SampleResult], None]) -> None:
+        self.client, self.beta, self.on_done = client, beta, on_done
+        self.want = {k: (qk, c) for k, qk, c in parts}
+        self.got: dict[int, SampleResult] = {}
+        self.lock = threading.Lock()
+
+    def part(self, k: int, r: SampleResult) -> None:
+        c = self.client
+        if isinstance(r, Sampled) and len(r.keys) != self.want[k][1]:
+            r = ProtocolError("keys", f"replay shard {k} sent {len(r.keys)} items, {self.want[k][1]} asked", "batch")
+        c.heard(k, r)
+        with self.lock:
+            self.got[k] = r
+            if len(self.got) < len(self.want):
+                return
+        failed = [(k, r) for k, r in sorted(self.got.items()) if not isinstance(r, Sampled)]
+        if failed:
+            with c._lock:
+                for k, _ in failed:
+                    c.state[k].failed += 1
+                c.dropped_batches += 1
+                c.dropped_items += sum(len(r.keys) for r in self.got.values() if isinstance(r, Sampled))
+            k, err = failed[0]
+            # the prefetcher counts a timeout, a not-ready or a bad reply, and retries the batch
+            # (drawn from the shards still up)
+            out: SampleResult = (NotReady(f"replay shard {k}: {err}") if isinstance(err, NotReady)
+                                 else RemoteTimeout(f"replay shard {k}: {err}") if isinstance(err, RemoteTimeout)
+                                 else err)
+            self.on_done(out)
+            return
+        try:
+            out = c.combine([(k, self.want[k][0], self.got[k]) for k in sorted(self.got)], self.beta)  # type: ignore[misc]
+        except ProtocolError as e:
+            with c._lock:
+                c.dropped_batches += 1
+            out = e
+        self.on_done(out)
+
+
+def replay_client_for(node: Node, run_id: str, shards: int, client_id: str, timeout_s: float,
+                      max_message_bytes: int, seed: int | None = None) -> "ZenohReplayClient | ShardedReplayClient":
+    """The learner's replay client: one replay (``shards`` = 1, the unsharded keys) or several."""
+    if shards == 1:
+        return ZenohReplayClient(node, P.Keys(run_id), client_id, timeout_s, max_message_bytes)
+    return ShardedReplayClient(node, run_id, shards, client_id, timeout_s, max_message_bytes, seed)
+
+
+__all__ = ["Sampled", "ZenohReplayClient", "ShardedReplayClient", "SamplePrefetcher", "RemoteTimeout", "NotReady",
+           "replay_client_for"]

@@ -24,7 +24,7 @@ from zenrl.common.errors import CheckpointError
 from zenrl.common.metrics import RateMeter
 from zenrl.common.networks import arch_fingerprint, params_to_arrays
 from zenrl.common.policy_io import initial_q_weights
-from zenrl.common.replay_client import SamplePrefetcher, ZenohReplayClient
+from zenrl.common.replay_client import SamplePrefetcher, ShardedReplayClient, replay_client_for
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.base import LearnerBase
@@ -54,7 +54,9 @@ class ApexLearner(LearnerBase):
             self.dqn.load_initial(initial_q_weights(cfg.learner.init_from, cfg.learner.init_exported),
                                   cfg.learner.init_from)
             log.info("initial weights from %s", cfg.learner.init_from)
-        self.client = ZenohReplayClient(node, self.keys, self.id, cfg.transport.query_timeout_s, cfg.transport.max_message_bytes)
+        # replay.shards > 1: batches drawn across the shards by their priority mass (common/replay_client.py)
+        self.client = replay_client_for(node, run_id, cfg.replay.shards, self.id, cfg.transport.query_timeout_s,
+                                        cfg.transport.max_message_bytes, seed=cfg.seed)
 
     def make_core(self) -> DQNLearner:
         """The learning step this learner drives (R2D2 gives its recurrent one)."""
@@ -185,6 +187,8 @@ class ApexLearner(LearnerBase):
                      "transitions_consumed": self.transitions_consumed, "not_ready": pf.not_ready,
                      "sample_timeouts": pf.timeouts, "sample_errors": pf.errors,
                      "send_dropped": sender.dropped, "send_failed": sender.failed, **self.dqn.values()})
+        if isinstance(self.client, ShardedReplayClient):
+            vals.update(self.client.values())
         line = None
         if self._n_acc:
             line = (f"updates {self.dqn.updates} v{self.version} loss {vals.get('loss', 0.0):.4f} q {vals.get('q_mean', 0.0):.3f} "

@@ -239,6 +239,16 @@ class InMemoryReplay:
         return self._inserts_total
 
     @property
+    def priority_mass(self) -> float:
+        """The total the sampling probabilities are fractions of: the sum tree's total
+        ``sum_i (p_i + eps) ** alpha`` (removed items count 0), or in uniform mode the number of
+        stored items not removed (each weighs 1). A learner sampling across replay shards draws
+        from each shard in proportion to this (docs/architecture.md)."""
+        if self._tree is None:
+            return float(self._size - (self.removed_live if self.removed_total else 0))
+        return float(self._tree.total)
+
+    @property
     def alpha(self) -> float:
         return self._alpha
 

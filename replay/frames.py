@@ -170,6 +170,11 @@ class FrameReplay:
         return self._inner.inserts_total
 
     @property
+    def priority_mass(self) -> float:
+        """:attr:`InMemoryReplay.priority_mass` of the transitions."""
+        return self._inner.priority_mass
+
+    @property
     def frames_total(self) -> int:
         return self._frames_total
 

@@ -105,6 +105,8 @@ class Sampler:
         self.charge = charge
         self.poison_removed = 0  #: poisoned items removed from sampling
         self.poison_stale = 0  #: poisoned keys no longer stored (evicted, or removed already)
+        self.priority_updates = 0  #: priority update messages taken (decoded and within bounds)
+        self.priority_keys = 0  #: keys those updates named
 
     def readiness(self, batch_size: int) -> str:
         """``""`` if a batch of ``batch_size`` may be sampled now, else the reason why not
@@ -134,14 +136,18 @@ class Sampler:
             why = self.readiness(req.batch_size)
             b = self.buffer()
             size = 0 if b is None else b.size
+            # the mass the probabilities are fractions of, in both replies: a learner sampling
+            # across shards weighs this shard by it (common/replay_client.py)
+            mass = 0.0 if b is None else b.priority_mass
             if why:
                 self.not_ready_replies += 1
-                return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size)
+                return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size,
+                                     mass=mass)
             s = b.sample(req.batch_size, req.beta, self.rng)
             self.sampled_items += req.batch_size
         self.sampled.add(1)
         return P.SampleReply(request_id=req.request_id, status="ok", replay_size=size,
-                             keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=s.data)
+                             keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=s.data, mass=mass)
 
     def on_priorities(self, key: str, payload: bytes) -> None:
         """The subscriber of ``replay/priorities``."""
@@ -168,6 +174,8 @@ class Sampler:
                                else [UNKNOWN_SOURCE] * bad.shape[0])
                 if msg.keys.size:
                     b.update_priorities(msg.keys.astype(np.int64), msg.priorities.astype(np.float64))
+            self.priority_updates += 1
+            self.priority_keys += int(msg.keys.size)
         for k, src in zip(bad.tolist() if sources else [], sources):
             detail = f"item {k} made the learner's loss or gradient non-finite; removed from sampling"
             if self.charge is not None:
@@ -176,6 +184,10 @@ class Sampler:
                 self.rejects.reject("poison", detail, src)
 
     def stats_values(self) -> dict[str, Any]:
-        return {"sample_batches_per_s": self.sampled.rate(), "sample_batches_total": self.sampled.total,
+        # read without the lock (its caller may hold it): one float, at worst a moment old
+        b = self.buffer()
+        mass = 0.0 if b is None else b.priority_mass
+        return {"priority_mass": mass, "sample_batches_per_s": self.sampled.rate(), "sample_batches_total": self.sampled.total,
                 "not_ready_replies": self.not_ready_replies, "poison_removed": self.poison_removed,
-                "poison_stale": self.poison_stale}
+                "poison_stale": self.poison_stale, "priority_updates_total": self.priority_updates,
+                "priority_keys_total": self.priority_keys}

@@ -54,17 +54,21 @@ class ReplayService:
     the role's stop event, which ends :meth:`step`'s idle wait at once (a prompt shutdown)."""
 
     def __init__(self, cfg: RunConfig, node: Node | None, run_id: str, service_id: str = "replay",
-                 stop: threading.Event | None = None) -> None:
+                 stop: threading.Event | None = None, shard: int | None = None) -> None:
         self.cfg = cfg
         self.rcfg = rcfg = cfg.replay
         self.node = node
-        self.keys = P.Keys(run_id)
+        #: which shard of a sharded replay (``replay.shards`` > 1) this is: its keys and log folder
+        self.shard = P.replay_shard(shard, rcfg.shards)
+        self.keys = P.Keys(run_id, self.shard)
         self.id = service_id
         self.max_bytes = cfg.transport.max_message_bytes
         self._lock = threading.Lock()
         self.journal: Journal | None = None
         if rcfg.durable:
             log_dir = rcfg.log_dir or str(Path(cfg.runs_dir) / run_id / "replay")
+            if self.shard is not None:
+                log_dir = str(Path(log_dir) / f"shard-{self.shard}")
             self.journal = Journal(log_dir, rcfg.segment_items or max(1, rcfg.capacity // 8), rcfg.flush_interval_s,
                                    rcfg.snapshot_interval_s, rcfg.durable_retry_s, rcfg.durable_backlog_bytes)
         checker = make_checker(cfg) if rcfg.check_semantics else None
@@ -285,13 +289,16 @@ def keep_freed_memory() -> bool:
         return False
 
 
-def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay") -> None:
+def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "replay",
+         shard: int | None = None) -> None:
     """Entry point of ``zenrl replay``: build, run in the role loop until ``stop``, close the
-    session. Raises :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
+    session. ``shard``: this service's shard of ``replay.shards``. Raises
+    :class:`~zenrl.common.roles.RoleFailed` when the ingest thread is gone."""
+    P.replay_shard(shard, cfg.replay.shards)  # a shard number that does not fit: ConfigError before connecting
     if not keep_freed_memory():
         log.info("malloc tuning not available here: chunk buffers are allocated fresh each time")
     with Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg)) as node:
-        svc = ReplayService(cfg, node, run_id, service_id, stop)
+        svc = ReplayService(cfg, node, run_id, service_id, stop, shard)
         # idle waits no longer than the stats interval, so that a short one is kept
         cadence = Cadence(cfg.replay.stats_interval_s, idle_s=min(0.5, cfg.replay.stats_interval_s))
         RoleLoop(node, svc.keys, "replay", svc.id, cadence).run(svc, stop)

@@ -46,9 +46,9 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     # the replay checks R2D2's sequences (of r2d2's length and state size) when algo says so
     "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2"),
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
-                "env", "transport", "actor.num_actors"),
+                "env", "transport", "actor.num_actors", "replay.shards"),
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
-              "env", "transport", "learner.gamma", "league"),
+              "env", "transport", "learner.gamma", "league", "replay.shards"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
     "league": ("run_id", "runs_dir", "seed", "league", "opponents.pool", "transport"),
@@ -144,7 +144,16 @@ def _watch_parent(stop: threading.Event) -> None:
 def cmd_replay(args: argparse.Namespace) -> int:
     from zenrl.replay.service import main
 
-    return _run_role(args, "replay", lambda c, r, s: main(c, r, s, args.id))
+    shard = args.shard
+    if shard is None and os.environ.get("ZENRL_REPLAY_SHARD", "").strip():
+        raw = os.environ["ZENRL_REPLAY_SHARD"].strip()
+        if not raw.isdigit():
+            sys.stderr.write(f"zenrl: error: ZENRL_REPLAY_SHARD={raw!r} must be a shard number (0, 1, ...)\n")
+            return EXIT_CONFIG
+        shard = int(raw)
+    # a shard's default id names it, so that its alive/stats keys differ from the other shards'
+    sid = args.id or ("replay" if shard is None else f"replay-{shard}")
+    return _run_role(args, "replay", lambda c, r, s: main(c, r, s, sid, shard))
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
@@ -477,7 +486,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("replay", help="the prioritized replay service", epilog=_options_epilog("replay"), formatter_class=fmt)
     _add_config_args(s)
-    s.add_argument("--id", default="replay", help="service id")
+    s.add_argument("--id", default=None, help="service id (default: replay, or replay-<k> for shard k)")
+    s.add_argument("--shard", type=int, default=None, metavar="K",
+                   help="this service's shard when replay.shards > 1 (0..shards-1; also $ZENRL_REPLAY_SHARD)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_replay)
 

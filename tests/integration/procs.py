@@ -16,10 +16,11 @@ def publish(args: argparse.Namespace) -> int:
 
     rng = np.random.default_rng(args.seed)
     with Node(args.router, 10.0) as node:
-        client = ZenohReplayClient(node, P.Keys(args.run), args.actor)
+        client = ZenohReplayClient(node, P.Keys(args.run, args.shard), args.actor)
         # wait until the replay service is reachable (its liveliness token), not a bare sleep
         deadline = time.monotonic() + 20
-        while not node.alive_now(P.Keys(args.run).alive_role("replay"), 1.0):
+        want = P.Keys(args.run).alive("replay", "replay" if args.shard is None else f"replay-{args.shard}")
+        while not node.alive_now(want, 1.0):
             if time.monotonic() > deadline:
                 return 3
         for i in range(args.chunks):
@@ -172,6 +173,7 @@ def main() -> int:
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--plain", action="store_true", help="ordinary rewards in [-1, 1] (default: tagged by seed)")
     s.add_argument("--pause-s", type=float, default=0.0, help="pause between chunks")
+    s.add_argument("--shard", type=int, default=None, help="the replay shard to write to (replay.shards > 1)")
     s = sub.add_parser("claim")
     s.add_argument("--router", required=True)
     s.add_argument("--run", required=True)

@@ -78,7 +78,7 @@ def container(docs: list[dict], workload: str, name: str) -> dict:
     return next(c for c in spec["containers"] if c["name"] == name)
 
 
-OVERLAYS = ("plain", "secured", "gpu")
+OVERLAYS = ("plain", "secured", "gpu", "sharded-replay")
 ROLES = {"zenrl-replay": "replay", "zenrl-learner": "learner", "zenrl-actor": "actor", "zenrl-evaluator": "evaluator"}
 
 
@@ -219,6 +219,30 @@ def test_secured_each_pod_gets_only_its_own_credentials(tree, tmp_path):
     assert set(secrets[_generated(docs, "zenrl-router-tls")]["data"]) == {"router.pem", "router-key.pem"}
     users = next(v for v in router["volumes"] if v["name"] == mounts["/zenoh"])["secret"]["secretName"]
     assert set(secrets[users]["data"]) == {"users.txt"}
+
+
+def test_sharded_replay_overlay_runs_one_replay_pod_per_shard(tree):
+    """replay.shards pods, pod k shard k with id replay-<k> in its probes; every zenrl pod reads
+    the same replay.shards; the unsharded overlays keep one replay pod with no shard."""
+    from zenrl.health import build_parser
+
+    docs = render(tree, "sharded-replay")
+    env = by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-env")]["data"]
+    shards = int(env["ZENRL__REPLAY__SHARDS"])
+    sts = workloads(docs)["zenrl-replay"]
+    assert shards > 1 and sts["spec"]["replicas"] == shards
+    c = container(docs, "zenrl-replay", "replay")
+    (shard_env,) = [e for e in c["env"] if e["name"] == "ZENRL_REPLAY_SHARD"]
+    assert shard_env["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.labels['apps.kubernetes.io/pod-index']"
+    for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+        args = build_parser().parse_args(c[probe]["exec"]["command"][3:])
+        assert args.ident == "replay-{ordinal}", (probe, args.ident)  # the id `zenrl replay --shard k` takes
+    for name in ROLES:  # learner and actors read the shard count from the same ConfigMap
+        assert {"configMapRef": {"name": _generated(docs, "zenrl-env")}} in container(docs, name, ROLES[name])["envFrom"]
+    plain = render(tree, "plain")
+    assert workloads(plain)["zenrl-replay"]["spec"]["replicas"] == 1
+    assert "ZENRL__REPLAY__SHARDS" not in by_kind(plain, "ConfigMap")[_generated(plain, "zenrl-env")]["data"]
+    assert not any(e["name"] == "ZENRL_REPLAY_SHARD" for e in container(plain, "zenrl-replay", "replay").get("env", []))
 
 
 def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):

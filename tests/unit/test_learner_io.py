@@ -226,6 +226,7 @@ def test_prefetcher_retries_not_ready_timeouts_and_bad_replies_after_a_backoff()
         node.take()(ok_reply())
         s = pf.get(timeout_s=1.0)
         assert s is not None and s.prepared == "ok"
+        assert pf.last_not_ready_reason == ""  # served again: the old reason is not shown as current
     finally:
         pf.stop()
 

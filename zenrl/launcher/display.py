@@ -28,6 +28,9 @@ class Progress:
     actor_steps: dict[str, int] = field(default_factory=dict)
     learner: dict[str, Any] = field(default_factory=dict)
     replay: dict[str, Any] = field(default_factory=dict)
+    #: each replay service's last stats by id (several with replay.shards > 1; ``replay`` then
+    #: sums their size, capacity and inserts)
+    replays: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: a league run: the league service's last stats
     league: dict[str, Any] = field(default_factory=dict)
     evals: list[dict[str, Any]] = field(default_factory=list)
@@ -65,7 +68,16 @@ class Progress:
                 elif msg.role == "learner":
                     self.learner = dict(msg.values)
                 elif msg.role == "replay":
-                    self.replay = dict(msg.values)
+                    self.replays[msg.id] = dict(msg.values)
+                    if len(self.replays) == 1:
+                        self.replay = dict(msg.values)
+                    else:  # a sharded replay: its counts, sizes, rates and mass summed over the shards
+                        tot: dict[str, Any] = {}
+                        for v in self.replays.values():
+                            for k, x in v.items():
+                                if isinstance(x, (int, float)) and not isinstance(x, bool):
+                                    tot[k] = tot.get(k, 0) + x
+                        self.replay = {**tot, "shards": len(self.replays)}
             elif isinstance(msg, P.EpisodeStats):
                 self._actor(msg.actor_id, msg.env_steps)
                 self.recent_returns = (self.recent_returns + [float(x) for x in msg.returns])[-100:]

@@ -133,6 +133,8 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
     role = r["role"]
     if role == "replay" and "size" in r:
         size = f"size {r['size']:,} / {r.get('capacity', 0):,}"
+        if isinstance(r.get("priority_mass"), (int, float)):
+            size += f", priority mass {r['priority_mass']:.4g}"
         if r.get("durable_degraded"):  # ingest goes on in memory; a restart would not restore it all
             size += (f", DURABLE LOG DEGRADED ({r.get('durable_error') or 'disk error'}; "
                      f"{r.get('durable_backlog_items', 0):,} items in memory only)")
@@ -142,7 +144,13 @@ def _detail(r: dict[str, Any], learner_version: int | None) -> str:
     if role == "league" and "players" in r:
         return f"{r['players']} players, {r.get('snapshots', 0)} snapshots (zenrl league status)"
     if role == "learner" and r.get("policy_lag") is not None:
-        return f"policy lag {float(r['policy_lag']):.1f}"
+        shards = sorted(int(k[6:-6]) for k in r if k.startswith("replay") and k.endswith("_items") and k[6:-6].isdigit())
+        if not shards:
+            return f"policy lag {float(r['policy_lag']):.1f}"
+        # a sharded replay: which shards the learner draws from, and how its items split
+        items = ", ".join(f"{k}: {int(r.get(f'replay{k}_items') or 0):,}" for k in shards)
+        return (f"policy lag {float(r['policy_lag']):.1f}; replay shards up {r.get('replay_shards_up', 0)}/{len(shards)}, "
+                f"items drawn {items}")
     if role == "evaluator" and r.get("eval_return") is not None:
         win = f", win rate {r['eval_win_rate']:.0%}" if r.get("eval_win_rate") is not None else ""
         return f"return {r['eval_return']:.1f}{win}" + (" (from metrics.jsonl)" if r.get("eval_from_log") else "")

@@ -115,6 +115,14 @@ class Child:
     agent: str | None = None
 
 
+def replay_children(shards: int, prefix: str = "", **kw: Any) -> list[Child]:
+    """The replay service, or with ``replay.shards`` = N > 1 one per shard (``replay-<k>``, each
+    with its own id, stats, log file and durable log folder ``shard-<k>``)."""
+    if shards == 1:
+        return [Child(f"{prefix}replay", "replay", [], **kw)]
+    return [Child(f"{prefix}replay-{k}", "replay", ["--shard", str(k), "--id", f"replay-{k}"], **kw) for k in range(shards)]
+
+
 class Launcher:
     def __init__(self, cfg: RunConfig, resume: bool = False, exporter_port: int | None = None) -> None:
         self.exporter_port = exporter_port  # also start `zenrl exporter` there (Prometheus metrics)
@@ -197,7 +205,7 @@ class Launcher:
         conf = self.run_dir / "agents" / f"{aid}.yaml"
         kw = {"config": conf, "run_id": acfg.run_id, "agent": aid}
         resume = [] if fresh or not self.resume else ["--auto-resume"]
-        kids = [Child(f"{aid}-replay", "replay", [], **kw), Child(f"{aid}-learner", "learner", resume, **kw)]
+        kids = [*replay_children(acfg.replay.shards, f"{aid}-", **kw), Child(f"{aid}-learner", "learner", resume, **kw)]
         for i in range(acfg.actor.num_actors):
             kids.append(Child(f"{aid}-actor-{i}", "actor", ["--id", f"{aid}-actor-{i}", "--slot", str(i)], **kw))
         if acfg.evaluator.enabled:
@@ -215,7 +223,7 @@ class Launcher:
                 kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port), "--host", host]))
             return kids
         if self.algorithm.uses_replay:
-            kids.append(Child("replay", "replay", []))
+            kids.extend(replay_children(self.cfg.replay.shards))
         kids.append(Child("learner", "learner", ["--resume"] if self.resume else []))
         for i in range(self.cfg.actor.num_actors):
             kids.append(Child(f"actor-{i}", "actor", ["--id", f"actor-{i}", "--slot", str(i)]))
@@ -452,7 +460,8 @@ class Launcher:
             solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
         return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
                 "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
-                "replay": p.replay, **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
+                "replay": p.replay, **({"replays": p.replays} if len(p.replays) > 1 else {}),
+                **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
                 "solved": solved is not None,
                 "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
                 "restarts": segment["restarts"], "segments": [*self.earlier, segment]}
