@@ -102,7 +102,7 @@ class NStepToReplay:
         r = self.replay
         return {"sent_transitions": self.sent_transitions, "sent_chunks": r.sent_chunks,
                 "failed_chunks": r.failed_chunks, "undelivered_chunks": r.undelivered_chunks,
-                "backlog_chunks": r.backlog}
+                "backlog_chunks": r.backlog, "split_chunks": r.split_chunks, "oversized_chunks": r.oversized_chunks}
 
 
 class RolloutGradients:

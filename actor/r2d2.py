@@ -102,7 +102,8 @@ class SequencesToReplay:
         r = self.replay
         return {"sent_sequences": self.sent_sequences, "sent_transitions": self.sent_steps,
                 "sent_chunks": r.sent_chunks, "failed_chunks": r.failed_chunks,
-                "undelivered_chunks": r.undelivered_chunks, "backlog_chunks": r.backlog}
+                "undelivered_chunks": r.undelivered_chunks, "backlog_chunks": r.backlog,
+                "split_chunks": r.split_chunks, "oversized_chunks": r.oversized_chunks}
 
 
 class R2D2Actor(ActorWorker):
@@ -130,7 +131,8 @@ class R2D2Actor(ActorWorker):
         # a sharded replay: this actor's chunks go to shard slot % replay.shards, for its life
         self.replay = ZenohReplayClient(node, P.Keys(run_id, P.actor_shard(slot, cfg.replay.shards)), actor_id,
                                         cfg.transport.query_timeout_s,
-                                        cfg.transport.max_message_bytes, acfg.backlog_chunks,
+                                        # the replay drops chunks over its cap: split them here instead
+                                        min(cfg.transport.max_message_bytes, cfg.replay.max_chunk_bytes), acfg.backlog_chunks,
                                         None if acfg.compress == "none" else acfg.compress)
         image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in spec.values())
         builder = SequenceBuilder(acfg.envs_per_actor, rcfg.sequence_length, rcfg.n_step, cfg.learner.gamma,

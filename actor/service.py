@@ -69,7 +69,8 @@ class ApexActor(ActorWorker):
         # a sharded replay: this actor's chunks go to shard slot % replay.shards, for its life
         self.replay = ZenohReplayClient(node, P.Keys(run_id, P.actor_shard(slot, cfg.replay.shards)), actor_id,
                                         cfg.transport.query_timeout_s,
-                                        cfg.transport.max_message_bytes, acfg.backlog_chunks,
+                                        # the replay drops chunks over its cap: split them here instead
+                                        min(cfg.transport.max_message_bytes, cfg.replay.max_chunk_bytes), acfg.backlog_chunks,
                                         None if acfg.compress == "none" else acfg.compress)
         image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in spec.values())
         adder = NStepToReplay(self.replay, acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma, acfg.chunk_size,

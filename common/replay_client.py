@@ -71,8 +71,12 @@ class ZenohReplayClient:
         #: chunks held while no replay subscribes (replay or router restarting), resent later
         self._backlog: collections.deque[bytes] = collections.deque()
         self.backlog_limit = backlog_chunks
-        #: chunks that could not be delivered: backlog overflow or a failed put
+        #: chunks that could not be delivered: backlog overflow, a failed put, or too large
         self.undelivered_chunks = 0
+        #: chunks over the size cap sent as two halves (each counted again if split further)
+        self.split_chunks = 0
+        #: chunks over the size cap that could not be split (frame mode, one item): not sent
+        self.oversized_chunks = 0
         #: how long a new publisher waits for the replay's subscription to become visible
         self.match_wait_s = min(1.0, timeout_s)
 
@@ -90,7 +94,13 @@ class ZenohReplayClient:
         msg = P.TransitionBatch(actor_id=self.actor_id, policy_version=int(policy_version), seq=next(self._seq),
                                 data=dict(batch), priorities=None if priorities is None else np.asarray(priorities, np.float32),
                                 frames=None if frames is None else dict(frames), frame_base=frame_base)
-        payload = msg.encode(self.max_bytes, self.codec)
+        try:
+            payload = msg.encode(self.max_bytes, self.codec)
+        except ProtocolError as e:
+            if e.reason != "size":
+                raise
+            self._too_large(batch, priorities, policy_version, frames, e)
+            return
         if not self._tx.matching_status.matching:
             # nobody would receive it (replay down, or the router restarting): hold it
             self._backlog.append(payload)
@@ -101,6 +111,26 @@ class ZenohReplayClient:
         while self._backlog:
             self._put(self._backlog.popleft())
         self._put(payload)
+
+    def _too_large(self, batch: Mapping[str, np.ndarray], priorities: np.ndarray | None, policy_version: int,
+                   frames: Mapping[str, np.ndarray] | None, err: ProtocolError) -> None:
+        """A chunk over the cap (the replay's ``replay.max_chunk_bytes``, which it would drop):
+        sent as two halves, recursively; a frame-mode chunk (whose items refer to its frames) or a
+        single item that is still too large is not sent, counted in ``oversized_chunks`` and
+        logged."""
+        n = len(next(iter(batch.values())))
+        if frames is None and n > 1:
+            self.split_chunks += 1
+            h = n // 2
+            for sl in (slice(0, h), slice(h, n)):
+                self.insert({k: v[sl] for k, v in batch.items()}, None if priorities is None else np.asarray(priorities)[sl],
+                            policy_version)
+            return
+        self.oversized_chunks += 1
+        self.undelivered_chunks += 1
+        if self.oversized_chunks == 1 or self.oversized_chunks % 1000 == 0:
+            log.error("actor %s: %d chunk(s) of %d items not sent, too large for the replay (%s); lower actor.chunk_size "
+                      "or raise replay.max_chunk_bytes", self.actor_id, self.oversized_chunks, n, err)
 
     def _put(self, payload: bytes) -> None:
         try:

@@ -76,6 +76,8 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "sent_chunks": ("sent_chunks", COUNTER, "Transition chunks sent to the replay."),
         "failed_chunks": ("failed_chunks", COUNTER, "Chunks whose send failed (retried from the backlog)."),
         "undelivered_chunks": ("undelivered_chunks", COUNTER, "Chunks no replay could take (lost)."),
+        "split_chunks": ("split_chunks", COUNTER, "Chunks over replay.max_chunk_bytes sent as two halves."),
+        "oversized_chunks": ("oversized_chunks", COUNTER, "Chunks over replay.max_chunk_bytes that could not be split (frame mode, one item): not sent."),
         "backlog_chunks": ("backlog_chunks", GAUGE, "Chunks waiting in the actor's send backlog."),
         "weights_rejected": ("rejected_weights", COUNTER, "Weights messages the actor refused."),
         "sent_gradients": ("sent_gradients", COUNTER, "Gradient messages sent (A3C workers)."),
