@@ -26,6 +26,7 @@ import torch
 
 from zenrl.actor.adders import RolloutGradients
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Sampling
 from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, FirstWeights
@@ -63,7 +64,8 @@ class A3CWorker(ActorWorker):
                          Sampling(self.net, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1))),
                          self.adder, weights, FirstWeights(min(2.0, cfg.transport.query_timeout_s)),
                          poll_steps=cfg.actor.weights_poll_steps, report_s=cfg.actor.episode_report_s,
-                         query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0)
+                         query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0,
+                         pacer=StepPacer(cfg.actor.max_steps_per_s, cfg.actor.envs_per_actor))
         self.max_rollouts: int | None = None
 
     def start(self, node: Any, sup: Any = None) -> None:

@@ -27,6 +27,7 @@ import torch
 
 from zenrl.actor.adders import UnrollsToLearner
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Sampling
 from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, FirstWeights
@@ -86,7 +87,8 @@ class ImpalaActor(ActorWorker):
         super().__init__(keys, actor_id, slot, envs, policy, self.adder, weights,
                          FirstWeights(min(2.0, cfg.transport.query_timeout_s)),
                          poll_steps=cfg.actor.weights_poll_steps, report_s=cfg.actor.episode_report_s,
-                         query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0)
+                         query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0,
+                         pacer=StepPacer(cfg.actor.max_steps_per_s, cfg.actor.envs_per_actor))
         self.max_unrolls: int | None = None
 
     def start(self, node: Any, sup: Any = None) -> None:

@@ -372,3 +372,11 @@ def test_absurd_gradient_norm_rejected_not_clipped(tmp_path):
     assert _same(net, snap) and ap.updates == 0 and all(p.grad is None for p in net.parameters())
     # an ordinary one still applies
     assert ap.apply(_grad_msg(net, 1, scale=1e-3))[0] == APPLIED and not _same(net, snap)
+
+
+def test_worker_keeps_actor_max_steps_per_s(tmp_path):
+    """actor.max_steps_per_s paces an A3C worker (it once applied to Ape-X and R2D2 actors only)."""
+    cfg = _cfg(tmp_path, **{"actor.max_steps_per_s": 40})
+    _, payload = _weights(cfg, version=1)
+    w = A3CWorker(cfg, FakeNode(payload), "t", "w0", 0)
+    assert w.pacer is not None and w.pacer.period_s == pytest.approx(4 / 40)

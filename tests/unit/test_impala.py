@@ -280,3 +280,10 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
         _feed(s, 4, version=0)
         assert s.step(0.01)
     assert all(torch.equal(a, b) for a, b in zip(svc.net.parameters(), again.net.parameters()))
+
+
+def test_actor_keeps_actor_max_steps_per_s(tmp_path):
+    """actor.max_steps_per_s paces an IMPALA actor (it once applied to Ape-X and R2D2 actors only)."""
+    cfg = _cfg(tmp_path, **{"actor.max_steps_per_s": 40})
+    a = ImpalaActor(cfg, FakeNode(weights_payload(_net(cfg), version=1)), "t", "a0", 0)
+    assert a.pacer is not None and a.pacer.period_s == pytest.approx(E / 40)
