@@ -14,7 +14,7 @@ source's traffic for a while once it keeps breaking rules.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Container, Mapping
 
 import numpy as np
 
@@ -97,6 +97,21 @@ def frame_shapes(rule: ObsRule, frame_stack: int | None) -> list[tuple[int, ...]
     return [one] if frame_stack else [whole]
 
 
+
+def missing_or_misshapen(data: Mapping[str, np.ndarray], fields: Mapping[str, tuple[np.dtype, tuple[int, ...]]],
+                         skip: Container[str]) -> Rejection | None:
+    """The first of ``fields`` ({name: (dtype, per-item shape)}, those in ``skip`` left out: frame
+    fields, checked as ids) that ``data`` lacks or holds with another dtype or per-item shape."""
+    for k, (dt, shape) in fields.items():
+        if k in skip:
+            continue
+        a = data.get(k)
+        if a is None:
+            return Rejection("spec", f"field {k} is missing")
+        if a.dtype != dt or a.shape[1:] != shape:
+            return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {dt.name}{list(shape)}")
+    return None
+
 class ChunkChecker:
     """Checks one chunk's ``data`` (flat ``{name: array[B, ...]}``) and ``priorities``
     (float32[B] or None) against the run's env spec and bounds.
@@ -169,14 +184,9 @@ class ChunkChecker:
                     return Rejection("spec", f"frame ids {f}: {ids.dtype.name}{list(ids.shape[1:])} per item, the env's "
                                              f"layout needs int64{[stack] if stack else []}")
                 refs.add(f)
-        for k, (dt, shape) in {**self.required, **self.optional}.items():
-            if k in self.rules:
-                continue
-            a = data.get(k)
-            if a is None:
-                return Rejection("spec", f"field {k} is missing")
-            if a.dtype != dt or a.shape[1:] != shape:
-                return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {dt.name}{list(shape)}")
+        bad = missing_or_misshapen(data, {**self.required, **self.optional}, self.rules)
+        if bad is not None:
+            return bad
         extra = sorted(set(data) - refs - set(self.required) - set(self.optional))
         if extra:
             return Rejection("spec", f"field {extra[0][:128]} is not part of a frame-mode Ape-X transition")
@@ -410,14 +420,9 @@ class SequenceChecker:
             if ids.dtype != np.int64 or ids.shape[1:] != want:
                 return Rejection("spec", f"frame ids {k}: {ids.dtype.name}{list(ids.shape[1:])} per item, the env's "
                                          f"layout needs int64{list(want)}")
-        for k, (dt, shape) in self.required.items():
-            if k in self.rules:
-                continue
-            a = data.get(k)
-            if a is None:
-                return Rejection("spec", f"field {k} is missing")
-            if a.dtype != dt or a.shape[1:] != shape:
-                return Rejection("spec", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, expected {dt.name}{list(shape)}")
+        bad = missing_or_misshapen(data, self.required, self.rules)
+        if bad is not None:
+            return bad
         extra = sorted(set(data) - set(self.required))
         if extra:
             return Rejection("spec", f"field {extra[0][:128]} is not part of a frame-mode R2D2 sequence")
