@@ -62,9 +62,16 @@ def test_a_flooding_worker_cannot_starve_an_honest_one(router, run_id, procs, tm
         sent = wait_until(lambda: (raw := honest_stats.take()) and P.Stats.decode(raw).values.get("sent_gradients"),
                           30, "the honest worker's last stats")
         final = wait_until(lambda: (v := stats()) and v, 30, "the learner's stats")
-        # every honest gradient was applied but the few in flight when versions moved (stale)
-        assert final["applied_from/honest"] >= 0.9 * sent, f"{sent} sent: " + " ".join(
-            f"{k}={v}" for k, v in sorted(final.items()) if any(w in k for w in ("from/", "stale", "share", "queue")))
+        got = " ".join(f"{k}={v}" for k, v in sorted(final.items())
+                       if any(w in k for w in ("from/", "stale", "share", "queue")))
+        # every honest gradient is accounted for: applied, or dropped as stale or evicted and
+        # counted by name (the last one may still be queued when the worker stops)
+        fates = sum(final.get(f"{k}/honest", 0) for k in ("applied_from", "stale_from", "queue_dropped_from"))
+        assert fates >= sent - 2, f"{sent} sent: {got}"
+        # and most were applied: the stale ones are those the flood's turns, taken while the
+        # honest worker computes, moved more than a3c.max_staleness versions on; their share
+        # grows with the machine's load (about a tenth on a busy 2-core machine)
+        assert final["applied_from/honest"] >= 0.75 * sent, f"{sent} sent: {got}"
         assert final.get("rejected_from/honest", 0) == 0
         flood.send_signal(signal.SIGTERM)
         assert flood.wait(timeout=30) == 0, procs.log("flood")[-3000:]
