@@ -2,6 +2,7 @@
 
 Trains ``--config`` with ``zenrl run`` in a subprocess (its own Zenoh port and runs directory)
 and, while it trains, evaluates the newest checkpoint each time a new one appears: greedy
+(``--policy sample`` for an actor-critic's sampled policy)
 matches against each opponent not yet beaten (``--episodes`` per opponent, half as red, half as
 blue, seeds from ``--eval-seed``, never used in training). An opponent's time is the moment
 (seconds since ``zenrl run`` was launched, start-up included) at which the first checkpoint
@@ -61,13 +62,13 @@ def newest_checkpoint(ckpt_dir: Path) -> tuple[int, Path, float] | None:
 
 
 def evaluate_checkpoint(path: Path, opponents: list[str], episodes: int, seed: int,
-                        workers: int) -> dict[str, Any] | None:
+                        workers: int, policy: str = "greedy") -> dict[str, Any] | None:
     """Per-opponent results of ``path``, or None when the learner pruned it before it loaded."""
     from zenrl.tools import evaluate
 
     try:
         out = evaluate(str(path), opponents=opponents, episodes=episodes, workers=workers, seed=seed,
-                       progress=False)
+                       progress=False, policy=policy)
     except FileNotFoundError:
         return None
     except Exception as e:  # a checkpoint pruned while loading shows up as a load error
@@ -88,6 +89,9 @@ def main() -> int:
     ap.add_argument("--target", type=float, default=0.9, help="win rate to reach")
     ap.add_argument("--episodes", type=int, default=20, help="matches per opponent per evaluation (even)")
     ap.add_argument("--eval-seed", type=int, default=1_000_000, help="first evaluation match seed")
+    ap.add_argument("--policy", choices=("greedy", "sample"), default="greedy",
+                    help="how the evaluation plays: greedy (argmax) or sample (draw from an a3c/impala "
+                         "policy's action distribution, as the policy the learner trains acts)")
     ap.add_argument("--eval-workers", type=int, default=1, help="evaluation processes")
     ap.add_argument("--eval-nice", type=int, default=5, help="niceness of the evaluation (this process)")
     ap.add_argument("--max-wall", type=float, default=1200.0, help="training budget, seconds since launch")
@@ -107,7 +111,7 @@ def main() -> int:
 
     t_bench = time.perf_counter()
     out: dict[str, Any] = {"bench": "burgerwar_speed", "config": args.config, "overrides": args.set,
-                           "opponents": opponents, "target": args.target, "episodes_per_eval": args.episodes,
+                           "opponents": opponents, "target": args.target, "episodes_per_eval": args.episodes, "policy": args.policy,
                            "max_wall_s": args.max_wall, "seed": args.seed}
     time_to: dict[str, float | None] = {o: None for o in opponents}
     reached: dict[str, Any] = {}
@@ -137,7 +141,7 @@ def main() -> int:
             if newest is not None and newest[0] > last_updates:
                 updates, path, mtime = newest
                 todo = [o for o in opponents if time_to[o] is None]
-                res = evaluate_checkpoint(path, todo, args.episodes, args.eval_seed, args.eval_workers)
+                res = evaluate_checkpoint(path, todo, args.episodes, args.eval_seed, args.eval_workers, args.policy)
                 if res is not None:
                     last_updates = updates
                     t_ckpt = round(mtime - t0, 1)
