@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -210,12 +211,17 @@ class LeagueService:
                 return "opponent_version", f"{m.opponent} was never served version {m.opponent_version}"
         return None
 
-    def on_opponent(self, payload: bytes) -> bytes | None:
+    def _answer(self, handler: Callable[[bytes], bytes | None], payload: bytes) -> bytes | None:
+        """``handler(payload)``; an unexpected error costs only this query (no reply: the asker
+        times out) and is counted as ``request_internal/<type>``."""
         try:
-            return self._on_opponent(payload)
+            return handler(payload)
         except Exception as e:  # noqa: BLE001 - one query costs only itself; counted by type
             self.rejects.reject(f"request_internal/{type(e).__name__}", str(e))
             return None
+
+    def on_opponent(self, payload: bytes) -> bytes | None:
+        return self._answer(self._on_opponent, payload)
 
     def _on_opponent(self, payload: bytes) -> bytes | None:
         try:
@@ -243,11 +249,7 @@ class LeagueService:
         return reply.encode()
 
     def on_weights(self, payload: bytes) -> bytes | None:
-        try:
-            return self._on_weights(payload)
-        except Exception as e:  # noqa: BLE001 - one query costs only itself; counted by type
-            self.rejects.reject(f"request_internal/{type(e).__name__}", str(e))
-            return None
+        return self._answer(self._on_weights, payload)
 
     def _on_weights(self, payload: bytes) -> bytes | None:
         try:
