@@ -2,9 +2,8 @@
 
 Trains ``--config`` with ``zenrl run`` in a subprocess (its own Zenoh port and runs directory)
 and, while it trains, evaluates the newest checkpoint each time a new one appears: greedy
-(``--policy sample`` for an actor-critic's sampled policy)
-matches against each opponent not yet beaten (``--episodes`` per opponent, half as red, half as
-blue, seeds from ``--eval-seed``, never used in training). An opponent's time is the moment
+(or, with ``--policy sample``, an actor-critic's sampled) matches against each opponent not yet
+beaten (``--episodes`` per opponent, half as red, half as blue, seeds from ``--eval-seed``, never used in training). An opponent's time is the moment
 (seconds since ``zenrl run`` was launched, start-up included) at which the first checkpoint
 that wins at least ``--target`` of its matches was written; the checkpoint's write time counts,
 not the end of its evaluation, so a slow evaluation does not inflate the figure. The run stops
@@ -111,8 +110,8 @@ def main() -> int:
 
     t_bench = time.perf_counter()
     out: dict[str, Any] = {"bench": "burgerwar_speed", "config": args.config, "overrides": args.set,
-                           "opponents": opponents, "target": args.target, "episodes_per_eval": args.episodes, "policy": args.policy,
-                           "max_wall_s": args.max_wall, "seed": args.seed}
+                           "opponents": opponents, "target": args.target, "episodes_per_eval": args.episodes,
+                           "policy": args.policy, "max_wall_s": args.max_wall, "seed": args.seed}
     time_to: dict[str, float | None] = {o: None for o in opponents}
     reached: dict[str, Any] = {}
     evals: list[dict[str, Any]] = []
