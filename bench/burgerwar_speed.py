@@ -3,8 +3,8 @@
 Trains ``--config`` with ``zenrl run`` in a subprocess (its own Zenoh port and runs directory)
 and, while it trains, evaluates the newest checkpoint each time a new one appears: greedy
 (or, with ``--policy sample``, an actor-critic's sampled) matches against each opponent not yet
-beaten (``--episodes`` per opponent, half as red, half as blue, seeds from ``--eval-seed``, never used in training). An opponent's time is the moment
-(seconds since ``zenrl run`` was launched, start-up included) at which the first checkpoint
+beaten (``--episodes`` per opponent, half as red, half as blue, seeds from ``--eval-seed``,
+never used in training). An opponent's time is the moment (seconds since ``zenrl run`` was launched, start-up included) at which the first checkpoint
 that wins at least ``--target`` of its matches was written; the checkpoint's write time counts,
 not the end of its evaluation, so a slow evaluation does not inflate the figure. The run stops
 when every opponent is beaten, at ``--max-wall`` or when the training ends.
