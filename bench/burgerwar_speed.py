@@ -1,13 +1,14 @@
 """Wall-clock time for a Burger War config to reach a target win rate against named opponents.
 
 Trains ``--config`` with ``zenrl run`` in a subprocess (its own Zenoh port and runs directory)
-and, while it trains, evaluates the newest checkpoint each time a new one appears: greedy
-(or, with ``--policy sample``, an actor-critic's sampled) matches against each opponent not yet
-beaten (``--episodes`` per opponent, half as red, half as blue, seeds from ``--eval-seed``,
-never used in training). An opponent's time is the moment (seconds since ``zenrl run`` was launched, start-up included) at which the first checkpoint
-that wins at least ``--target`` of its matches was written; the checkpoint's write time counts,
-not the end of its evaluation, so a slow evaluation does not inflate the figure. The run stops
-when every opponent is beaten, at ``--max-wall`` or when the training ends.
+and, while it trains, evaluates the newest checkpoint each time a new one appears: greedy (or,
+with ``--policy sample``, an actor-critic's sampled) matches against each opponent not yet beaten
+(``--episodes`` per opponent, half as red, half as blue, seeds from ``--eval-seed``, never used in
+training). An opponent's time is the moment (seconds since ``zenrl run`` was launched, start-up
+included) at which the first checkpoint that wins at least ``--target`` of its matches was
+written; the checkpoint's write time counts, not the end of its evaluation, so a slow evaluation
+does not inflate the figure. The run stops when every opponent is beaten, at ``--max-wall`` or
+when the training ends.
 
 The evaluation shares the machine with the training: it runs in this process at ``--eval-nice``
 (lower priority than the training) and evaluates only the newest checkpoint, skipping those
