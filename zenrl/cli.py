@@ -467,6 +467,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_average(args: argparse.Namespace) -> int:
+    from zenrl.tools.averaging import average
+
+    setup_logging(args.log_level, "average")
+    from zenrl import tools
+
+    tools.print_json_line(average(args.sources, args.out, args.last))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="zenrl", description="Distributed actor-learner RL over Eclipse Zenoh.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -640,6 +650,16 @@ def build_parser() -> argparse.ArgumentParser:
     policy_args(s)
     s.add_argument("--out", required=True, help="output .pt file")
     s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("average", help="one checkpoint whose policy weights are the mean of several checkpoints' "
+                                       "(stochastic weight averaging): steadier than any one of them")
+    s.add_argument("sources", nargs="+", metavar="CHECKPOINT",
+                   help="ckpt-*.pt files of one run, or a run folder (runs/<id>) or checkpoints folder")
+    s.add_argument("--last", type=int, default=None, metavar="K",
+                   help="for a folder: its newest K checkpoints (default: all)")
+    s.add_argument("--out", required=True, help="output checkpoint file (not in a checkpoints folder you resume from)")
+    s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
+    s.set_defaults(func=cmd_average)
     return p
 
 
