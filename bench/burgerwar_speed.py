@@ -12,7 +12,10 @@ when the training ends.
 
 The evaluation shares the machine with the training: it runs in this process at ``--eval-nice``
 (lower priority than the training) and evaluates only the newest checkpoint, skipping those
-written while it was busy. For a figure on a 2-core machine, run it alone on an unloaded one.
+written while it was busy. ``--every-checkpoint`` evaluates each checkpoint in turn instead (the
+learner keeps them all, and the evaluation goes on after the training ends until the last one is
+done): the first to reach the target is then never skipped, at the cost of a longer bench. For a
+figure on a 2-core machine, run it alone on an unloaded one.
 
 Reported (the last stdout line is one JSON object; progress goes to stderr):
 ``time_to_target_s`` {opponent: seconds or null}, ``reached`` {opponent: the checkpoint,
@@ -49,11 +52,13 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def newest_checkpoint(ckpt_dir: Path) -> tuple[int, Path, float] | None:
-    """(updates, path, mtime) of the newest checkpoint in ``ckpt_dir``, or None."""
+def next_checkpoint(ckpt_dir: Path, after: int, oldest: bool = False) -> tuple[int, Path, float] | None:
+    """(updates, path, mtime) of the newest checkpoint in ``ckpt_dir`` (with ``oldest``: the
+    oldest) of more than ``after`` updates, or None."""
     from zenrl.common.checkpoints import checkpoint_step, list_checkpoints
 
-    for p in reversed(list_checkpoints(ckpt_dir)):
+    found = [p for p in list_checkpoints(ckpt_dir) if (checkpoint_step(p) or 0) > after]
+    for p in (found if oldest else reversed(found)):
         try:
             return checkpoint_step(p), p, p.stat().st_mtime
         except FileNotFoundError:  # pruned by the learner meanwhile
@@ -98,6 +103,8 @@ def main() -> int:
     ap.add_argument("--checkpoint-every", type=float, default=60.0,
                     help="learner.checkpoint_interval_s for the run (the time resolution)")
     ap.add_argument("--seed", type=int, default=0, help="training seed")
+    ap.add_argument("--every-checkpoint", action="store_true",
+                    help="evaluate every checkpoint in order (the learner prunes none), not only the newest")
     ap.add_argument("--runs-dir", default=None, help="keep the run here (default: a temporary directory)")
     args = ap.parse_args()
     opponents = [o.strip() for o in args.opponents.split(",") if o.strip()]
@@ -112,7 +119,8 @@ def main() -> int:
     t_bench = time.perf_counter()
     out: dict[str, Any] = {"bench": "burgerwar_speed", "config": args.config, "overrides": args.set,
                            "opponents": opponents, "target": args.target, "episodes_per_eval": args.episodes,
-                           "policy": args.policy, "max_wall_s": args.max_wall, "seed": args.seed}
+                           "policy": args.policy, "max_wall_s": args.max_wall, "seed": args.seed,
+                           "every_checkpoint": args.every_checkpoint}
     time_to: dict[str, float | None] = {o: None for o in opponents}
     reached: dict[str, Any] = {}
     evals: list[dict[str, Any]] = []
@@ -127,6 +135,8 @@ def main() -> int:
                "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]",
                "--set", f"max_wall_s={args.max_wall}",
                "--set", f"learner.checkpoint_interval_s={args.checkpoint_every}"]
+        if args.every_checkpoint:
+            cmd += ["--set", "learner.keep_checkpoints=1000000"]
         for kv in args.set:
             cmd += ["--set", kv]
         t0 = time.time()
@@ -137,8 +147,8 @@ def main() -> int:
         last_updates = -1
         while True:
             finished = run.poll() is not None
-            newest = newest_checkpoint(ckpt_dir)
-            if newest is not None and newest[0] > last_updates:
+            newest = next_checkpoint(ckpt_dir, last_updates, oldest=args.every_checkpoint)
+            if newest is not None:
                 updates, path, mtime = newest
                 todo = [o for o in opponents if time_to[o] is None]
                 res = evaluate_checkpoint(path, todo, args.episodes, args.eval_seed, args.eval_workers, args.policy)
