@@ -16,6 +16,7 @@ MODELS = {
     # file: (env id it was trained on, opponent, matches, wins needed)
     "burgerwar_league.pt": ("zenrl/BurgerWar-v0", "waypoint", 4, 3),
     "burgerwar_camera.pt": ("zenrl/BurgerWarImage-v0", "cheese", 4, 3),
+    "burgerwar_pfsp.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
 }
 
 
