@@ -35,7 +35,8 @@ def allowed(acl: dict, user: str, flow: str, message: str, key: str) -> bool:
     subjects = {s["id"] for s in acl["subjects"] if user in (s.get("usernames") or [])}
     rule_ids = {r for p in acl["policies"] if set(p["subjects"]) & subjects for r in p["rules"]}
     k = zenoh.KeyExpr(key)
-    return any(flow in r["flows"] and message in r["messages"] and any(zenoh.KeyExpr(e).includes(k) for e in r["key_exprs"])
+    return any(flow in r["flows"] and message in r["messages"]
+               and any(zenoh.KeyExpr(e).includes(k) for e in r["key_exprs"])
                for r in acl["rules"] if r["id"] in rule_ids)
 
 
@@ -70,7 +71,8 @@ def test_shard_keys_have_the_unsharded_keys_rules(name, actors):
         assert who(acl, "egress", "query", sample) == {"replay"}
         assert who(acl, "ingress", "query", sample) == {"learner"}
         assert who(acl, "egress", "reply", sample) == {"learner"}
-        for msg, flow in (("declare_queryable", "ingress"), ("reply", "ingress"), ("query", "ingress"), ("reply", "egress")):
+        for msg, flow in (("declare_queryable", "ingress"), ("reply", "ingress"), ("query", "ingress"),
+                          ("reply", "egress")):
             assert who(acl, flow, msg, sample) == who(acl, flow, msg, f"zenrl/{RUN}/replay/sample"), (msg, flow)
     # the shard keys cannot be stretched: no login may put two segments deeper, nor on a shard's sample key
     assert not who(acl, "ingress", "put", f"zenrl/{RUN}/transitions/0/x/actor-0")
@@ -106,8 +108,10 @@ def test_league_keys_only_the_league_serves_actors_ask_and_report_as_themselves(
     assert who(acl, "ingress", "liveliness_token", f"zenrl/{LEAGUE_RUN}/alive/league/league") == {"league"}
     assert who(acl, "ingress", "put", f"zenrl/{LEAGUE_RUN}/stats/league/league") == {"league"}
     # and nothing else: no weights, priorities, transitions or sample answers
-    for key, msg in ((f"zenrl/{AGENT_RUN}/replay/priorities", "put"), (f"zenrl/{AGENT_RUN}/transitions/actor-0", "put"),
-                     (f"zenrl/{AGENT_RUN}/replay/sample", "declare_queryable"), (f"zenrl/{AGENT_RUN}/learner/weights", "reply")):
+    for key, msg in ((f"zenrl/{AGENT_RUN}/replay/priorities", "put"),
+                     (f"zenrl/{AGENT_RUN}/transitions/actor-0", "put"),
+                     (f"zenrl/{AGENT_RUN}/replay/sample", "declare_queryable"),
+                     (f"zenrl/{AGENT_RUN}/learner/weights", "reply")):
         assert not allowed(acl, "league", "ingress", msg, key), key
     # an agent's processes (run <league-run>.<agent>) get the rules of any run
     assert who(acl, "ingress", "put", f"zenrl/{AGENT_RUN}/transitions/1/actor-1") == \
