@@ -2,10 +2,11 @@
 router's access control lets that login send, and the checks a process makes before it starts.
 
 * Every role logs in with a user name and password of its own (``learner``, ``replay``,
-  ``evaluator``, ``monitor``; host routers ``hostrouter``), and every actor with one of its own:
+  ``evaluator``, ``monitor``, ``league``; host routers ``hostrouter``), and every actor with one of its own:
   user ``actor-<i>``. The router's access control (deploy/zenoh/router-secure.json5, expanded
   by :func:`expand_acl`) lets ``actor-<i>`` publish only ``transitions/actor-<i>``,
-  ``unrolls/actor-<i>``, ``gradients/actor-<i>``, ``episodes/actor-<i>`` and
+  ``unrolls/actor-<i>``, ``gradients/actor-<i>``, ``episodes/actor-<i>``, a replay shard's
+  ``transitions/<k>/actor-<i>``, a league's ``league/results/actor-<i>`` and
   ``stats/actor/actor-<i>``, and hold only the tokens ``alive/actor/actor-<i>`` and
   ``slots/<i>/actor-<i>``: it can neither speak as another actor nor hold another's slot.
 * An actor logged in as ``actor-<i>`` is actor ``actor-<i>`` on exploration slot ``i``
@@ -32,7 +33,7 @@ from zenrl.common.errors import ConfigError, TransportError
 from zenrl.common.transport import config_section, write_config
 
 #: the roles other than actors, each one login (client-<role>.json5)
-ROLE_USERS = ("learner", "replay", "evaluator", "monitor")
+ROLE_USERS = ("learner", "replay", "evaluator", "monitor", "league")
 #: the login of host routers at the central router
 HOST_ROUTER_USER = "hostrouter"
 #: every development password in the repository is ``<user>-dev-password``
@@ -174,7 +175,9 @@ def actor_acl(i: int) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, A
     uid = actor_user(i)
     rules = [
         {"id": f"{uid}-publish", "permission": "allow", "flows": ["ingress"], "messages": ["put"],
-         "key_exprs": [f"zenrl/*/{k}/{uid}" for k in _ACTOR_DATA] + [f"zenrl/*/stats/actor/{uid}"]},
+         "key_exprs": [f"zenrl/*/{k}/{uid}" for k in _ACTOR_DATA]
+         # a sharded replay's input (transitions/<shard>/<actor>) and a league's match results
+         + [f"zenrl/*/transitions/*/{uid}", f"zenrl/*/league/results/{uid}", f"zenrl/*/stats/actor/{uid}"]},
         {"id": f"{uid}-tokens", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
          "key_exprs": [f"zenrl/*/alive/actor/{uid}", f"zenrl/*/slots/{int(i)}/{uid}"]},
     ]

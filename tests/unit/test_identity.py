@@ -77,7 +77,8 @@ def test_expand_acl_binds_each_actor_to_its_own_keys_and_slot():
         assert pol["subjects"] == [me]
         keys = [k for r in pol["rules"] for k in rules[r]["key_exprs"]]
         assert sorted(keys) == sorted([f"zenrl/*/{d}/{me}" for d in ("transitions", "unrolls", "gradients", "episodes")]
-                                      + [f"zenrl/*/stats/actor/{me}", f"zenrl/*/alive/actor/{me}", f"zenrl/*/slots/{i}/{me}"])
+                                      + [f"zenrl/*/transitions/*/{me}", f"zenrl/*/league/results/{me}",
+                                         f"zenrl/*/stats/actor/{me}", f"zenrl/*/alive/actor/{me}", f"zenrl/*/slots/{i}/{me}"])
     assert "actor-5" not in {s["id"] for s in acl["subjects"]}
     with pytest.raises(Exception, match="at least one"):
         expand_acl(acl, 0)
@@ -91,7 +92,8 @@ def test_make_credentials_writes_a_fresh_consistent_set_once(tmp_path):
     made = make_credentials(ZENOH_DIR, out, actors=3, ca="/ca/ca.pem")
     assert made["written"]
     users = read_users(out / "users.txt")
-    assert set(users) == {"learner", "replay", "evaluator", "monitor", "hostrouter", "actor-0", "actor-1", "actor-2"}
+    assert set(users) == {"learner", "replay", "evaluator", "monitor", "league", "hostrouter",
+                          "actor-0", "actor-1", "actor-2"}
     assert len(set(users.values())) == len(users) and not any(is_dev_password(p) for p in users.values())
     for f in out.iterdir():
         assert stat.S_IMODE(os.stat(f).st_mode) == 0o600, f.name
@@ -110,8 +112,8 @@ def test_make_credentials_writes_a_fresh_consistent_set_once(tmp_path):
     assert not make_credentials(ZENOH_DIR, out, actors=5)["written"]
     assert read_users(out / "users.txt") == users
     assert make_credentials(ZENOH_DIR, out, actors=1, force=True)["written"]
-    assert set(read_users(out / "users.txt")) & set(users) == {"learner", "replay", "evaluator", "monitor", "hostrouter",
-                                                                "actor-0"}
+    assert set(read_users(out / "users.txt")) & set(users) == {"learner", "replay", "evaluator", "monitor", "league",
+                                                                "hostrouter", "actor-0"}
     assert read_users(out / "users.txt")["learner"] != users["learner"]
 
 
