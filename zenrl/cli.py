@@ -468,11 +468,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_average(args: argparse.Namespace) -> int:
+    from zenrl import tools
     from zenrl.tools.averaging import average
 
     setup_logging(args.log_level, "average")
-    from zenrl import tools
-
     tools.print_json_line(average(args.sources, args.out, args.last))
     return 0
 

@@ -62,10 +62,7 @@ def average(sources: Sequence[str | os.PathLike[str]], out: str | os.PathLike[st
     files = checkpoints_to_average(sources, last)
     if any(Path(out).resolve() == f.resolve() for f in files):
         raise ZenrlError(f"average: --out {str(out)!r} is one of the checkpoints averaged; write elsewhere")
-    states = []
-    for f in files:
-        st = read_checkpoint(f)
-        states.append((f, st))
+    states = [(f, read_checkpoint(f)) for f in files]
     newest_file, newest = max(states, key=lambda fs: (fs[1].updates, fs[1].saved_at))
     ref = newest.policy_state()
     sums: dict[str, torch.Tensor] = {}
