@@ -7,6 +7,8 @@
 * ``zenrl play`` (:mod:`~zenrl.tools.media`): one episode as a GIF (pillow) or MP4 (imageio).
 * ``zenrl plot`` (:mod:`~zenrl.tools.plotting`): learning curves from ``metrics.jsonl``.
 * ``zenrl export`` (:mod:`~zenrl.tools.torchscript`): the greedy policy as TorchScript.
+* ``zenrl average`` (:mod:`~zenrl.tools.averaging`): one checkpoint whose policy weights are the
+  mean of several (stochastic weight averaging).
 
 Each takes a checkpoint file (evaluate and play also a ``zenrl export`` file), a run folder or a checkpoints folder (the newest checkpoint:
 :func:`~zenrl.tools.loading.resolve_checkpoint`). pillow, matplotlib, imageio and pygame are the
