@@ -4,8 +4,8 @@ token ``slots/<k>/<actor-id>``. A slot whose holder the replay has quarantined (
 lease when frozen), so slots are reused; no central service holds the assignment.
 
 Claiming: read the tokens alive now, pick the lowest free slot (the previous one if it is still
-free), declare the token, wait until the router lists it, then keep the slot only if this
-actor's id is the smallest among the slot's holders it lists; otherwise withdraw and retry after
+free), declare the token, wait until it is listed, look again after a settle time, then keep
+the slot only if this actor's id is the smallest among the slot's holders then listed; otherwise withdraw and retry after
 a random back-off. Waiting for one's own token (rather than a fixed time) is what makes two
 concurrent claims agree: whichever token reached the router second is listed together with the
 first when its owner looks, so at most one of them keeps the slot.
@@ -45,10 +45,12 @@ def quarantined(node: Node, keys: P.Keys) -> set[str]:
 
 
 def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = None, visible_within_s: float = 10.0,
-               attempts: int = 20, seed: int | None = None, only: int | None = None) -> tuple[int, Any]:
+               attempts: int = 20, seed: int | None = None, only: int | None = None,
+               settle_s: float = 0.3) -> tuple[int, Any]:
     """Claim a slot; returns ``(slot, token)`` (the token is undeclared when ``node`` closes).
     ``visible_within_s``: how long a declared token may take to be listed by the router.
-    ``only``: claim this slot or none (:class:`TransportError` after ``attempts``)."""
+    ``only``: claim this slot or none (:class:`TransportError` after ``attempts``).
+    ``settle_s``: the wait before the second look at the slot's holders."""
     rng = random.Random(seed if seed is not None else actor_id)
     for _ in range(attempts):
         # a quarantined actor's slot counts as free: its data is dropped, so its slot explores nothing
@@ -67,6 +69,12 @@ def claim_slot(node: Node, keys: P.Keys, actor_id: str, previous: int | None = N
             if actor_id in holders or time.monotonic() > deadline:
                 break
             time.sleep(0.01)  # poll interval (each look is a round trip to the router)
+        if actor_id in holders:
+            # the session answers a liveliness query with its own tokens too, so seeing ours does
+            # not prove the router had it: look once more after a settle time, by which a rival's
+            # concurrent token has reached the router and both rivals list each other
+            time.sleep(settle_s)
+            holders = sorted(a for _, a in _holders(node, keys, cand) if a not in bad)
         if holders and holders[0] == actor_id:
             log.info("actor %s holds exploration slot %d", actor_id, cand)
             return cand, token
