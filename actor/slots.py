@@ -5,10 +5,11 @@ lease when frozen), so slots are reused; no central service holds the assignment
 
 Claiming: read the tokens alive now, pick the lowest free slot (the previous one if it is still
 free), declare the token, wait until it is listed, look again after a settle time, then keep
-the slot only if this actor's id is the smallest among the slot's holders then listed; otherwise withdraw and retry after
-a random back-off. Waiting for one's own token (rather than a fixed time) is what makes two
-concurrent claims agree: whichever token reached the router second is listed together with the
-first when its owner looks, so at most one of them keeps the slot.
+the slot only if this actor's id is the smallest among the slot's holders then listed;
+otherwise withdraw and retry after a random back-off. A session lists its own tokens too, so
+seeing one's own token does not prove the router has it; the second look, once a concurrent
+rival's token has reached the router, is what makes two concurrent claims agree: both list
+each other, and at most one of them keeps the slot.
 
 A secured actor (login ``actor-<i>``, zenrl/identity.py) claims exactly slot ``i`` (``only``):
 the router's access control lets that login hold no other slot token, and no other login hold
