@@ -255,6 +255,10 @@ class LeagueConfig(_Section):
     min_games: int = Field(30, ge=1, description="Matches since the last snapshot or reset before a win-rate rule may fire.")
     exploiter_reset_s: float = Field(900.0, gt=0, description="An exploiter is reset (fresh weights, empty replay) at least this often.")
     exploiter_win_rate: float = Field(0.7, gt=0, le=1, description="An exploiter whose win rate against the main agent since its reset passes this joins the league as a snapshot and is reset.")
+    exploiter_init: Literal["fresh", "main"] = Field("fresh", description=(
+        "Where a reset exploiter starts: fresh (random weights) or main (the main agent's newest checkpoint: "
+        "it already plays the game, so its whole generation goes into finding main's weaknesses). The first "
+        "generation, before main has a checkpoint, starts fresh either way."))
     exploiter_snapshot_on_timeout: bool = Field(True, description="An exploiter reset on the timer also leaves a snapshot in the league.")
     max_snapshots: int = Field(40, ge=1, le=1000, description="Frozen snapshots kept (the oldest is dropped with its table rows).")
     live_refresh_s: float = Field(30.0, gt=0, description="How often the weights of a learning agent served as an opponent (self-play, the exploiters' target) are refreshed.")

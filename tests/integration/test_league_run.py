@@ -17,7 +17,7 @@ SETS = ("max_wall_s=150", f"env.kwargs={json.dumps(MATCH)}", "evaluator.enabled=
         "replay.samples_per_insert=null", "learner.batch_size=32", "learner.checkpoint_interval_s=20",
         "league.agents.main.num_actors=1", "league.agents.main.envs_per_actor=4",
         "league.agents.exploiter.envs_per_actor=4", "league.snapshot_interval_s=30", "league.min_snapshot_interval_s=20",
-        "league.exploiter_reset_s=60", "league.live_refresh_s=5", "league.save_interval_s=2")
+        "league.exploiter_reset_s=60", "league.exploiter_init=main", "league.live_refresh_s=5", "league.save_interval_s=2")
 
 
 def test_league_run_snapshots_and_resets(tmp_path, run_id):
@@ -35,6 +35,9 @@ def test_league_run_snapshots_and_resets(tmp_path, run_id):
     applied = json.loads((run_dir / "league_applied.json").read_text())
     assert applied["exploiter"] == gen  # zenrl run restarted the exploiter for its last generation
     assert "reset to generation 1" in p.stderr
+    # the reset exploiter started from main's newest checkpoint (league.exploiter_init: main)
+    assert "exploiter starts from main's ckpt-" in p.stderr, p.stderr[-3000:]
+    assert "initial weights from" in (run_dir / "logs" / "exploiter-learner.log").read_text()
     counts = {(a, b): (w, d, l_) for a, b, w, d, l_ in state["payoff"]["counts"]}
     assert sum(counts.get(("exploiter", "main"), (0, 0, 0))) >= 1, counts
     assert sum(sum(v) for (a, _), v in counts.items() if a == "main") >= 4, counts

@@ -106,3 +106,24 @@ def test_status_of_a_stopped_run_reads_the_saved_league(tmp_path):
     rows = {r["id"]: r for r in rows_of(t)}
     assert rows["cheese"]["vs_main"] == [1, 0, 0] and rows["exploiter"]["vs_main"] == [1, 0, 0]
     assert rows["champ"]["kind"] == "frozen" and rows["champ"]["vs_main"] == [0, 1, 0]
+
+
+def test_a_reset_exploiter_starts_from_a_copy_of_mains_newest_checkpoint(tmp_path):
+    from zenrl.launcher.league_run import exploiter_init
+
+    cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}"])
+    agents = agent_configs(cfg, "lg1")
+    run_dir = tmp_path / "lg1"
+    assert exploiter_init(agents, "exploiter", run_dir) is None  # main has no checkpoint yet: fresh
+    ck = tmp_path / "lg1" / "agents" / "lg1.main" / "checkpoints"
+    ck.mkdir(parents=True)
+    (ck / "ckpt-000000000100.pt").write_bytes(b"old")
+    (ck / "ckpt-000000000200.pt").write_bytes(b"new")
+    out = exploiter_init(agents, "exploiter", run_dir)
+    assert out == run_dir / "agents" / "exploiter.init.pt" and out.read_bytes() == b"new"
+    (ck / "ckpt-000000000200.pt").unlink()  # main may prune it: the exploiter's copy stays
+    assert out.read_bytes() == b"new"
+    assert exploiter_init(agents, "main", run_dir) is None  # only an exploiter
+    fresh = agent_configs(load_config(ROOT / "configs/burgerwar_league_pfsp.yaml",
+                                      [f"runs_dir={tmp_path}", "league.exploiter_init=fresh"]), "lg1")
+    assert exploiter_init(fresh, "exploiter", run_dir) is None

@@ -102,3 +102,34 @@ def write_applied(run_dir: Path, applied: dict[str, int]) -> None:
     from zenrl.launcher.runfolder import write_json_atomic
 
     write_json_atomic(run_dir / APPLIED_FILE, applied)
+
+
+def exploiter_init(agents: dict[str, RunConfig], aid: str, run_dir: Path) -> Path | None:
+    """Where reset exploiter ``aid`` starts (``league.exploiter_init``): None for fresh weights,
+    or a copy of the main agent's newest checkpoint, ``runs/<run>/agents/<aid>.init.pt`` (a copy,
+    so that main's learner may prune its own file while the exploiter's learner reads this one).
+    None too while main has no checkpoint yet."""
+    import os
+    import shutil
+
+    from zenrl.common.checkpoints import list_checkpoints
+
+    acfg = agents[aid]
+    if acfg.league.exploiter_init != "main" or acfg.league.agents[aid].role != "exploiter":
+        return None
+    main = next(k for k, a in acfg.league.agents.items() if a.role == "main")
+    mcfg = agents[main]
+    ckpts = list_checkpoints(Path(mcfg.runs_dir) / (mcfg.run_id or "") / "checkpoints")
+    if not ckpts:
+        log.info("league: %s starts fresh: %s has no checkpoint yet", aid, main)
+        return None
+    out = run_dir / "agents" / f"{aid}.init.pt"
+    tmp = out.with_suffix(".tmp")
+    try:
+        shutil.copyfile(ckpts[-1], tmp)
+        os.replace(tmp, out)
+    except OSError as e:  # pruned between the listing and the copy, or a full disk: start fresh
+        log.warning("league: %s starts fresh: cannot copy %s: %s", aid, ckpts[-1], e)
+        return None
+    log.info("league: %s starts from %s's %s", aid, main, ckpts[-1].name)
+    return out

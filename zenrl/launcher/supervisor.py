@@ -198,13 +198,16 @@ class Launcher:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         log.debug("started %s (pid %d): %s", c.name, c.proc.pid, " ".join(cmd))
 
-    def _agent_children(self, aid: str, fresh: bool = False) -> list[Child]:
+    def _agent_children(self, aid: str, fresh: bool = False, init: Path | None = None) -> list[Child]:
         """The replay, learner, actors (and, for the main agent, evaluator) of league agent
-        ``aid``, on its own config and run id; ``fresh``: its learner starts from scratch."""
+        ``aid``, on its own config and run id; ``fresh``: its learner starts from scratch (from
+        the weights in checkpoint ``init``, if given)."""
         acfg = self.agents[aid]
         conf = self.run_dir / "agents" / f"{aid}.yaml"
         kw = {"config": conf, "run_id": acfg.run_id, "agent": aid}
         resume = [] if fresh or not self.resume else ["--auto-resume"]
+        if init is not None:
+            resume = [*resume, "--set", f"learner.init_from={init}"]
         kids = [*replay_children(acfg.replay.shards, f"{aid}-", **kw), Child(f"{aid}-learner", "learner", resume, **kw)]
         for i in range(acfg.actor.num_actors):
             kids.append(Child(f"{aid}-actor-{i}", "actor", ["--id", f"{aid}-actor-{i}", "--slot", str(i)], **kw))
@@ -413,7 +416,7 @@ class Launcher:
 
     def _apply_resets(self) -> None:
         """Restart an agent afresh whose generation the league moved past the applied one."""
-        from zenrl.launcher.league_run import write_applied
+        from zenrl.launcher.league_run import exploiter_init, write_applied
 
         with self.progress.lock:
             seen = dict(self._league_seen)
@@ -432,7 +435,7 @@ class Launcher:
 
             shutil.rmtree(self.run_dir / "agents" / (self.agents[aid].run_id or ""), ignore_errors=True)
             self.children = [c for c in self.children if c.agent != aid]
-            fresh = self._agent_children(aid, fresh=True)
+            fresh = self._agent_children(aid, fresh=True, init=exploiter_init(self.agents, aid, self.run_dir))
             for c in fresh:
                 self._spawn(c)
             self.children.extend(fresh)
