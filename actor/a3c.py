@@ -29,11 +29,10 @@ from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Sampling
 from zenrl.actor.weights import WeightsFollower
-from zenrl.actor.worker import ActorWorker, FirstWeights
+from zenrl.actor.worker import ActorWorker, FirstWeights, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
-from zenrl.common.opponents import wrap_opponents
 
 log = logging.getLogger(__name__)
 
@@ -50,11 +49,12 @@ class A3CWorker(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        # opponents.pool and self-play snapshots as match opponents (common/opponents.py)
-        envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         n_actions = num_actions(envs.single_action_space)
+        spec = obs_spec(envs.single_observation_space)
+        self.league = match_opponents(envs, cfg, node, run_id, worker_id, slot,
+                                      lambda: ActorCritic(spec, n_actions, cfg.network))
         torch.manual_seed(cfg.seed)
-        self.net = ActorCritic(obs_spec(envs.single_observation_space), n_actions, cfg.network)
+        self.net = ActorCritic(spec, n_actions, cfg.network)
         weights = WeightsFollower(node, keys, self.net, cfg.transport.max_message_bytes)
         a = cfg.a3c
         self.adder: RolloutGradients = RolloutGradients(

@@ -34,12 +34,11 @@ from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import EpisodeStartsToPolicy, Obs, RecurrentEpsilonGreedyQ, RecurrentExtras
 from zenrl.actor.sequences import SequenceBlock, SequenceBuilder
 from zenrl.actor.weights import WeightsFollower
-from zenrl.actor.worker import ActorWorker, AtOnce
+from zenrl.actor.worker import ActorWorker, AtOnce, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import num_actions, obs_spec, set_compute_threads
-from zenrl.common.opponents import wrap_opponents
 from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.replay_client import ZenohReplayClient
 
@@ -116,10 +115,10 @@ class R2D2Actor(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(acfg.torch_threads)
         envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        # opponents.pool and self-play snapshots as match opponents (common/opponents.py)
-        envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1))
         spec = obs_spec(envs.single_observation_space)
         n_actions = num_actions(envs.single_action_space)
+        self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot,
+                                      lambda: RecurrentQNetwork(spec, n_actions, cfg.network, rcfg.lstm_size))
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
         net = RecurrentQNetwork(spec, n_actions, cfg.network, rcfg.lstm_size).eval()
         if num_slots is None:

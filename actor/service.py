@@ -27,13 +27,11 @@ from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import EpsilonGreedyQ
 from zenrl.actor.weights import WeightsFollower
-from zenrl.actor.worker import ActorWorker, AtOnce
+from zenrl.actor.worker import ActorWorker, AtOnce, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
-from zenrl.common.league_client import LeagueChooser
 from zenrl.common.networks import QNetwork, num_actions, obs_spec, set_compute_threads
-from zenrl.common.opponents import wrap_opponents
 from zenrl.common.replay_client import ZenohReplayClient
 from zenrl.common.transport import Node
 
@@ -52,12 +50,7 @@ class ApexActor(ActorWorker):
         envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
         spec = obs_spec(envs.single_observation_space)
         n_actions = num_actions(envs.single_action_space)
-        # a league run: the league chooses each match's opponent and hears its result (common/league_client.py)
-        self.league = (LeagueChooser(cfg, node, actor_id, lambda: QNetwork(spec, n_actions, cfg.network))
-                       if cfg.league.player else None)
-        # opponents.pool and self-play snapshots as match opponents (common/opponents.py)
-        envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1),
-                                   chooser=self.league, on_result=None if self.league is None else self.league.report)
+        self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot, lambda: QNetwork(spec, n_actions, cfg.network))
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
         net = QNetwork(spec, n_actions, cfg.network).eval()
         if num_slots is None:
@@ -83,14 +76,6 @@ class ApexActor(ActorWorker):
                          episode_epsilon=float(eps.mean()))
         self.eps, self.net = eps, net
         self.adder: NStepToReplay = adder
-        if self.league is not None:
-            self.league.version_fn = lambda: weights.version
-
-    def report(self, interval_s: float) -> tuple[dict[str, Any], str | None]:
-        vals, line = super().report(interval_s)
-        if self.league is not None:
-            vals.update(self.league.values())
-        return vals, line
 
     @property
     def sent_transitions(self) -> int:

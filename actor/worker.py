@@ -30,6 +30,10 @@ from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Policy
 from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
+from zenrl.common.league_client import LeagueChooser
+from zenrl.common.opponents import wrap_opponents
+from zenrl.common.league_client import LeagueChooser
+from zenrl.common.opponents import wrap_opponents
 from zenrl.common.roles import Cadence, RoleLoop
 
 log = logging.getLogger(__name__)
@@ -81,6 +85,19 @@ class EvalInterval:
         return True
 
 
+def match_opponents(envs: EnvBatch, cfg: Any, node: Any, run_id: str, actor_id: str, slot: int,
+                    make_net: Callable[[], Any]) -> LeagueChooser | None:
+    """Wrap ``envs`` (in place) with their match opponents: ``opponents.pool`` and self-play
+    snapshots (common/opponents.py), or, in a league run (``league.player`` set by ``zenrl run``),
+    the league's choice of each match's opponent, to which every result is reported
+    (common/league_client.py). ``make_net()``: a fresh network of this actor's architecture (a
+    league opponent's weights are loaded into one). Returns the league chooser, or None."""
+    league = LeagueChooser(cfg, node, actor_id, make_net) if cfg.league.player else None
+    envs.envs = wrap_opponents(envs.envs, cfg, run_id, seed=cfg.seed + 31 * (slot + 1), chooser=league,
+                               on_result=None if league is None else league.report)
+    return league
+
+
 class ActorWorker:
     """Acting composed from a policy, an adder, the weights follower and a gate.
 
@@ -92,6 +109,9 @@ class ActorWorker:
     ``max_steps``: a budget of batched steps (then :meth:`done`)."""
 
     role = "actor"
+    #: a league run's chooser (:func:`match_opponents`), set by the composition before this
+    #: class's ``__init__``: it reports each result with the weights version acted with
+    league: Any = None
 
     def __init__(self, keys: P.Keys, worker_id: str, slot: int | None, envs: EnvBatch, policy: Policy,
                  adder: Adder, weights: WeightsFollower, gate: Gate, *, poll_steps: int | None,
@@ -103,6 +123,8 @@ class ActorWorker:
         self.poll_steps, self.report_s, self.query_timeout_s = poll_steps, report_s, query_timeout_s
         self.round_seed, self.pacer, self.episode_epsilon = round_seed, pacer, episode_epsilon
         self.max_steps = max_steps
+        if self.league is not None:
+            self.league.version_fn = lambda: weights.version
         self.steps = 0          # batched steps
         self.env_steps = 0
         self.rounds = 0
@@ -155,6 +177,8 @@ class ActorWorker:
                      "weights_rejected": self.weights.rejected})
         if self.slot is not None:
             vals["slot"] = self.slot
+        if self.league is not None:
+            vals.update(self.league.values())
         return vals, None
 
     def save(self) -> None:

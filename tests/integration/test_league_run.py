@@ -43,3 +43,27 @@ def test_league_run_snapshots_and_resets(tmp_path, run_id):
     assert sum(sum(v) for (a, _), v in counts.items() if a == "main") >= 4, counts
     for rid in (run_id, f"{run_id}.main", f"{run_id}.exploiter"):
         assert not zenrl_pids(rid), zenrl_pids(rid)
+
+
+@pytest.mark.parametrize("algo", ["r2d2", "impala", "a3c"])
+def test_a_league_of_any_algorithm(tmp_path, run_id, algo):
+    """The same league with R2D2, IMPALA or A3C agents: every agent's actors take their
+    opponents from the league and report their matches (main against the bots and itself, the
+    exploiter against main); IMPALA and A3C agents run without a replay."""
+    sets = [s for s in SETS if not s.startswith(("max_wall_s", "league.exploiter_reset_s"))]
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/burgerwar_league_pfsp.yaml", run_id, *sets, f"algo={algo}",
+                                 "max_wall_s=75", "league.exploiter_init=fresh", timeout_s=600)
+    assert p.returncode == 0, (p.stderr[-3000:], logs)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("max_wall_s"), summary["stop_reason"]
+    assert all(v == 0 for v in summary["restarts"].values()), summary["restarts"]
+    has_replay = algo == "r2d2"
+    assert any(n.startswith("main-replay") for n in logs) == has_replay, sorted(logs)
+    state = json.loads((run_dir / "league" / "state.json").read_text())
+    counts = {(a, b): (w, d, l_) for a, b, w, d, l_ in state["payoff"]["counts"]}
+    assert sum(counts.get(("exploiter", "main"), (0, 0, 0))) >= 1, counts
+    assert sum(sum(v) for (a, _), v in counts.items() if a == "main") >= 4, counts
+    for name in ("main-actor-0", "exploiter-actor-0"):
+        assert "Traceback" not in logs[f"{name}.log"], logs[f"{name}.log"]
+    for rid in (run_id, f"{run_id}.main", f"{run_id}.exploiter"):
+        assert not zenrl_pids(rid), zenrl_pids(rid)

@@ -36,8 +36,12 @@ def test_a_bad_agent_override_names_the_agent():
         agent_configs(load_config(None, ["league.enabled=true"]), "x" * 60)
 
 
-def test_check_league_needs_apex_and_a_match_env_with_those_bots():
-    with pytest.raises(ConfigError, match="algo apex"):
+def test_check_league_needs_a_match_env_with_those_bots():
+    # every algorithm's actors take league opponents; only Ape-X and R2D2 learners can start
+    # from main's checkpoint
+    with pytest.raises(ConfigError, match="league.exploiter_init: main .* algo impala"):
+        check_league(load_config(None, ["league.enabled=true", "algo=impala", "league.exploiter_init=main"]))
+    with pytest.raises(ConfigError, match="match env"):
         check_league(load_config(None, ["league.enabled=true", "algo=a3c"]))
     with pytest.raises(ConfigError, match="match env"):
         check_league(load_config(None, ["league.enabled=true"]))

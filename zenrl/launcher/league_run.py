@@ -62,11 +62,12 @@ def agent_configs(cfg: RunConfig, run_id: str) -> dict[str, RunConfig]:
 
 
 def check_league(cfg: RunConfig) -> None:
-    """What a league run needs, checked before anything starts: Ape-X, a match env whose bots
+    """What a league run needs, checked before anything starts: a match env whose bots
     include every ``league.bots`` name, ``opponents.pool`` names (frozen players of the league)
     that are valid player ids and clash with no bot or agent, agent configs that validate."""
-    if cfg.algo != "apex":
-        raise ConfigError(f"league.enabled needs algo apex (the league's actors are Ape-X actors), got {cfg.algo!r}")
+    if cfg.league.exploiter_init == "main" and cfg.algo not in ("apex", "r2d2"):
+        raise ConfigError(f"league.exploiter_init: main starts an exploiter's learner from main's checkpoint "
+                          f"(learner.init_from), which algo {cfg.algo} has not; use fresh")
     from zenrl.common.env_factory import make_env
 
     env = make_env(cfg.env)

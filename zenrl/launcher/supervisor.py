@@ -208,7 +208,8 @@ class Launcher:
         resume = [] if fresh or not self.resume else ["--auto-resume"]
         if init is not None:
             resume = [*resume, "--set", f"learner.init_from={init}"]
-        kids = [*replay_children(acfg.replay.shards, f"{aid}-", **kw), Child(f"{aid}-learner", "learner", resume, **kw)]
+        kids = [*(replay_children(acfg.replay.shards, f"{aid}-", **kw) if self.algorithm.uses_replay else []),
+                Child(f"{aid}-learner", "learner", resume, **kw)]
         for i in range(acfg.actor.num_actors):
             kids.append(Child(f"{aid}-actor-{i}", "actor", ["--id", f"{aid}-actor-{i}", "--slot", str(i)], **kw))
         if acfg.evaluator.enabled:
