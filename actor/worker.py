@@ -32,8 +32,6 @@ from zenrl.actor.weights import WeightsFollower
 from zenrl.common import protocol as P
 from zenrl.common.league_client import LeagueChooser
 from zenrl.common.opponents import wrap_opponents
-from zenrl.common.league_client import LeagueChooser
-from zenrl.common.opponents import wrap_opponents
 from zenrl.common.roles import Cadence, RoleLoop
 
 log = logging.getLogger(__name__)
@@ -111,7 +109,7 @@ class ActorWorker:
     role = "actor"
     #: a league run's chooser (:func:`match_opponents`), set by the composition before this
     #: class's ``__init__``: it reports each result with the weights version acted with
-    league: Any = None
+    league: LeagueChooser | None = None
 
     def __init__(self, keys: P.Keys, worker_id: str, slot: int | None, envs: EnvBatch, policy: Policy,
                  adder: Adder, weights: WeightsFollower, gate: Gate, *, poll_steps: int | None,
