@@ -17,6 +17,7 @@ from tests.conftest import ROOT, wait_until
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
 from zenrl.common.networks import QNetwork, arch_fingerprint, num_actions, obs_spec, params_to_arrays
+from zenrl.common.recurrent import RecurrentQNetwork
 
 pytestmark = pytest.mark.integration
 
@@ -25,8 +26,8 @@ MATCH = {"opponents": {"cheese": 1}, "side": "random", "reward": "zero_sum", "co
          "match_time": 6.0, "sudden_death_time": 2.0}
 
 
-def config(tmp_path, run_id):
-    doc = {"algo": "apex", "seed": 3, "runs_dir": str(tmp_path / "runs"),
+def config(tmp_path, run_id, algo="apex"):
+    doc = {"algo": algo, "seed": 3, "runs_dir": str(tmp_path / "runs"),
            "env": {"id": "zenrl/BurgerWar-v0", "kwargs": MATCH},
            "network": {"hidden": [32]},
            "actor": {"num_actors": 1, "envs_per_actor": 4, "chunk_size": 64, "episode_report_s": 1.0},
@@ -155,3 +156,40 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
         assert t2.ids == t.ids and np.array_equal(t2.counts, t.counts)
         assert t2.values["results_total"] == t.values["results_total"]
     assert "restored" in procs.log("league-2")
+
+
+def test_r2d2_actors_play_the_leagues_recurrent_opponents(tmp_path, router, run_id, procs):
+    """The same league with R2D2 actor processes: the exploiter plays main's recurrent
+    Q-network, fetched from the league and built by the actor, and both actors' matches reach
+    the payoff table (every algorithm's actors take their opponents from the league)."""
+    from zenrl.common.env_factory import make_env
+    from zenrl.common.transport import Node
+
+    path = config(tmp_path, run_id, "r2d2")
+    cfg = load_config(path)
+    common = ["--config", str(path), "--router", router]
+    procs.zenrl("league", ["league", *common, "--run-id", run_id])
+    for aid in ("main", "exploiter"):
+        procs.zenrl(f"{aid}-actor", ["actor", *common, "--run-id", f"{run_id}.{aid}", "--id", f"{aid}-a0", "--slot", "0",
+                                     "--set", f"league.run_id={run_id}", "--set", f"league.player={aid}"])
+    env = make_env(cfg.env)
+    net = RecurrentQNetwork(obs_spec(env.observation_space), num_actions(env.action_space), cfg.network,
+                            cfg.r2d2.lstm_size)
+    env.close()
+    weights = P.Weights(version=4, learner_id="learner", arch=arch_fingerprint(net), updates=40,
+                        params=params_to_arrays(net)).encode()
+    with Node(router, 10.0) as node:
+        wait_until(lambda: node.alive_now(P.Keys(run_id).alive_role("league"), 1.0), 60, "the league's token")
+
+        def matches_played():
+            node.put(P.Keys(f"{run_id}.main").weights, weights, low_priority=True)  # main's learner's broadcast
+            t = table(node, run_id)
+            return t if (sum(wdl(t, "exploiter", "main")) >= 2
+                         and sum(wdl(t, "main", b)[i] for b in ("cheese", "teriyaki") for i in range(3)) >= 2) else None
+
+        t = wait_until(matches_played, 120, "R2D2 actors' matches in the payoff table", interval_s=0.5)
+        assert wdl(t, "exploiter", "main") == wdl(t, "main", "exploiter")[::-1]
+    for name in ("main-actor", "exploiter-actor"):
+        log = procs.log(name)
+        assert "Traceback" not in log, log[-3000:]
+    assert "league weights for main@4 not used" not in procs.log("exploiter-actor")

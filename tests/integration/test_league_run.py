@@ -52,7 +52,7 @@ def test_a_league_of_any_algorithm(tmp_path, run_id, algo):
     exploiter against main); IMPALA and A3C agents run without a replay."""
     sets = [s for s in SETS if not s.startswith(("max_wall_s", "league.exploiter_reset_s"))]
     p, run_dir, logs = run_zenrl(tmp_path, "configs/burgerwar_league_pfsp.yaml", run_id, *sets, f"algo={algo}",
-                                 "max_wall_s=75", "league.exploiter_init=fresh", timeout_s=600)
+                                 "max_wall_s=110", "league.exploiter_init=fresh", timeout_s=600)
     assert p.returncode == 0, (p.stderr[-3000:], logs)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"].startswith("max_wall_s"), summary["stop_reason"]

@@ -115,7 +115,7 @@ def test_status_of_a_stopped_run_reads_the_saved_league(tmp_path):
 def test_a_reset_exploiter_starts_from_a_copy_of_mains_newest_checkpoint(tmp_path):
     from zenrl.launcher.league_run import exploiter_init
 
-    cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}"])
+    cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}", "league.exploiter_init=main"])
     agents = agent_configs(cfg, "lg1")
     run_dir = tmp_path / "lg1"
     assert exploiter_init(agents, "exploiter", run_dir) is None  # main has no checkpoint yet: fresh
