@@ -40,6 +40,18 @@ def config(tmp_path, run_id, algo="apex"):
     return path
 
 
+def start_league(tmp_path, router, run_id, procs, algo="apex"):
+    """`zenrl league` and one `zenrl actor` per agent (main, exploiter) of :func:`config`'s
+    league, as real processes; returns (the config, the common CLI arguments)."""
+    path = config(tmp_path, run_id, algo)
+    common = ["--config", str(path), "--router", router]
+    procs.zenrl("league", ["league", *common, "--run-id", run_id])
+    for aid in ("main", "exploiter"):
+        procs.zenrl(f"{aid}-actor", ["actor", *common, "--run-id", f"{run_id}.{aid}", "--id", f"{aid}-a0", "--slot", "0",
+                                     "--set", f"league.run_id={run_id}", "--set", f"league.player={aid}"])
+    return load_config(path), common
+
+
 def table(node, run_id):
     return P.LeagueTable.decode(node.query(P.LeagueKeys(run_id).table, None, 5.0))
 
@@ -57,13 +69,7 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
     from zenrl.common.env_factory import make_env
     from zenrl.common.transport import Node
 
-    path = config(tmp_path, run_id)
-    cfg = load_config(path)
-    common = ["--config", str(path), "--router", router]
-    procs.zenrl("league", ["league", *common, "--run-id", run_id])
-    for aid in ("main", "exploiter"):
-        procs.zenrl(f"{aid}-actor", ["actor", *common, "--run-id", f"{run_id}.{aid}", "--id", f"{aid}-a0", "--slot", "0",
-                                     "--set", f"league.run_id={run_id}", "--set", f"league.player={aid}"])
+    cfg, common = start_league(tmp_path, router, run_id, procs)
     env = make_env(cfg.env)
     net = QNetwork(obs_spec(env.observation_space), num_actions(env.action_space), cfg.network)
     env.close()
@@ -165,13 +171,7 @@ def test_r2d2_actors_play_the_leagues_recurrent_opponents(tmp_path, router, run_
     from zenrl.common.env_factory import make_env
     from zenrl.common.transport import Node
 
-    path = config(tmp_path, run_id, "r2d2")
-    cfg = load_config(path)
-    common = ["--config", str(path), "--router", router]
-    procs.zenrl("league", ["league", *common, "--run-id", run_id])
-    for aid in ("main", "exploiter"):
-        procs.zenrl(f"{aid}-actor", ["actor", *common, "--run-id", f"{run_id}.{aid}", "--id", f"{aid}-a0", "--slot", "0",
-                                     "--set", f"league.run_id={run_id}", "--set", f"league.player={aid}"])
+    cfg, _ = start_league(tmp_path, router, run_id, procs, "r2d2")
     env = make_env(cfg.env)
     net = RecurrentQNetwork(obs_spec(env.observation_space), num_actions(env.action_space), cfg.network,
                             cfg.r2d2.lstm_size)
