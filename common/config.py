@@ -253,7 +253,7 @@ class LeagueConfig(_Section):
     min_snapshot_interval_s: float = Field(120.0, ge=0, description="... and sooner, once at least this long after its last one, when its win rate since then passes snapshot_win_rate.")
     snapshot_win_rate: float = Field(0.7, gt=0, le=1, description="Main agent: win rate against the league since its last snapshot that adds a snapshot early.")
     min_games: int = Field(30, ge=1, description="Matches since the last snapshot or reset before a win-rate rule may fire.")
-    exploiter_reset_s: float = Field(900.0, gt=0, description="An exploiter is reset (fresh weights, empty replay) at least this often.")
+    exploiter_reset_s: float = Field(900.0, gt=0, description="An exploiter is reset (a new generation: empty replay, weights as exploiter_init says) at least this often.")
     exploiter_win_rate: float = Field(0.7, gt=0, le=1, description="An exploiter whose win rate against the main agent since its reset passes this joins the league as a snapshot and is reset.")
     exploiter_init: Literal["fresh", "main"] = Field("fresh", description=(
         "Where a reset exploiter starts: fresh (random weights) or main (the main agent's newest checkpoint: "

@@ -205,11 +205,11 @@ class Launcher:
         acfg = self.agents[aid]
         conf = self.run_dir / "agents" / f"{aid}.yaml"
         kw = {"config": conf, "run_id": acfg.run_id, "agent": aid}
-        resume = [] if fresh or not self.resume else ["--auto-resume"]
+        learner_args = [] if fresh or not self.resume else ["--auto-resume"]
         if init is not None:
-            resume = [*resume, "--set", f"learner.init_from={init}"]
+            learner_args += ["--set", f"learner.init_from={init}"]
         kids = [*(replay_children(acfg.replay.shards, f"{aid}-", **kw) if self.algorithm.uses_replay else []),
-                Child(f"{aid}-learner", "learner", resume, **kw)]
+                Child(f"{aid}-learner", "learner", learner_args, **kw)]
         for i in range(acfg.actor.num_actors):
             kids.append(Child(f"{aid}-actor-{i}", "actor", ["--id", f"{aid}-actor-{i}", "--slot", str(i)], **kw))
         if acfg.evaluator.enabled:
