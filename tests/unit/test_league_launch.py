@@ -131,3 +131,25 @@ def test_a_reset_exploiter_starts_from_a_copy_of_mains_newest_checkpoint(tmp_pat
     fresh = agent_configs(load_config(ROOT / "configs/burgerwar_league_pfsp.yaml",
                                       [f"runs_dir={tmp_path}", "league.exploiter_init=fresh"]), "lg1")
     assert exploiter_init(fresh, "exploiter", run_dir) is None
+
+
+def test_a_resumed_runs_exploiter_past_its_first_generation_gets_mains_checkpoint(tmp_path):
+    from zenrl.launcher.supervisor import Launcher
+
+    def learner_args(resume, applied):
+        cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml",
+                          [f"runs_dir={tmp_path}", "run_id=lg1", "league.exploiter_init=main"])
+        la = Launcher(cfg, resume=resume)
+        la.applied = applied
+        kids = {c.name: c for c in la._plan()}
+        assert "main-replay" in kids and "exploiter-replay" in kids
+        return kids["exploiter-learner"].args, kids["main-learner"].args
+
+    ck = tmp_path / "lg1" / "agents" / "lg1.main" / "checkpoints"
+    ck.mkdir(parents=True)
+    (ck / "ckpt-000000000100.pt").write_bytes(b"main's")
+    init = f"learner.init_from={tmp_path / 'lg1' / 'agents' / 'exploiter.init.pt'}"
+    ex, main = learner_args(True, {"exploiter": 2, "main": 0})
+    assert ex == ["--auto-resume", "--set", init] and main == ["--auto-resume"]
+    assert learner_args(True, {"exploiter": 0})[0] == ["--auto-resume"]  # the first generation: fresh
+    assert learner_args(False, {"exploiter": 2})[0] == []                # a new run

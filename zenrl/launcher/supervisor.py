@@ -219,9 +219,14 @@ class Launcher:
     def _plan(self) -> list[Child]:
         kids = []
         if self.agents:
+            from zenrl.launcher.league_run import exploiter_init
+
             kids.append(Child("league", "league", []))
             for aid in self.agents:
-                kids.extend(self._agent_children(aid))
+                # a resumed run's exploiter past its first generation starts as its reset would
+                # have, should it have no checkpoint of its own yet (one of its own wins)
+                init = exploiter_init(self.agents, aid, self.run_dir) if self.resume and self.applied.get(aid, 0) >= 1 else None
+                kids.extend(self._agent_children(aid, init=init))
             if self.exporter_port is not None:
                 host = _split_endpoint(self.cfg.transport.listen[0])[1].strip("[]") or "0.0.0.0"
                 kids.append(Child("exporter", "exporter", ["--port", str(self.exporter_port), "--host", host]))
