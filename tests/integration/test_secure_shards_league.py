@@ -28,6 +28,23 @@ def _answers(node, key: str) -> list[bytes]:
     return sorted(r.ok.payload.to_bytes() for r in replies if r.ok is not None)
 
 
+def _delivered(sender, key: str, payload: bytes, inbox, suffix: str, what: str) -> None:
+    """Put ``payload`` on ``key`` until ``inbox`` holds it (under its short key ``suffix``)."""
+    wait_until(lambda: sender.put(key, payload) or inbox.has(suffix, payload), 10, what, 0.2)
+
+
+def _forgeries_dropped(sender, forged_keys, sentinel_key: str, inbox, sentinel_suffix: str) -> None:
+    """``sender`` puts b"forged" on each of ``forged_keys``, then b"sentinel" on its own key
+    (same session, same priority: in order on one link); once the sentinel arrived the forged
+    ones would have, and none may have."""
+    for key in forged_keys:
+        sender.put(key, b"forged")
+    sender.put(sentinel_key, b"sentinel")
+    wait_until(lambda: inbox.has(sentinel_suffix, b"sentinel"), 10, "the sender's own sentinel")
+    forged = [key for key, p in inbox.items if p == b"forged"]
+    assert not forged, f"the login published {forged}"
+
+
 def _nodes(ep, certs, tmp_path, *logins):
     from zenrl.common.transport import Node
 
@@ -49,23 +66,18 @@ def test_shard_keys_actor_publishes_only_as_itself_and_only_the_replay_answers(s
         actor.queryable(k1.sample, lambda _req: b"from-actor")
 
         # (a) actor-0's transitions to shard 1 under its own id reach the replay of shard 1
-        wait_until(lambda: actor.put(k1.transitions("actor-0"), b"warm-up") or at_replay.has("transitions/1/actor-0"),
-                   10, "actor-0's shard-1 transitions at the replay", 0.2)
+        _delivered(actor, k1.transitions("actor-0"), b"warm-up", at_replay, "transitions/1/actor-0",
+                   "actor-0's shard-1 transitions at the replay")
         # the learner's priorities to shard 1 reach the replay
-        wait_until(lambda: learner.put(k1.priorities, b"learner-prio") or at_replay.has("replay/1/priorities"),
-                   10, "the learner's shard-1 priorities at the replay", 0.2)
+        _delivered(learner, k1.priorities, b"learner-prio", at_replay, "replay/1/priorities",
+                   "the learner's shard-1 priorities at the replay")
         # actor-1's own shard transitions get through too (it is not a rule for actor-0 alone)
-        wait_until(lambda: other.put(k1.transitions("actor-1"), b"own") or at_replay.has("transitions/1/actor-1", b"own"),
-                   10, "actor-1's shard-1 transitions at the replay", 0.2)
+        _delivered(other, k1.transitions("actor-1"), b"own", at_replay, "transitions/1/actor-1",
+                   "actor-1's shard-1 transitions at the replay")
 
-        # (b) actor-0 publishes to shard 1 as actor-1, and priorities; then (same session, same
-        # priority: in order on one link) its own transitions: once those arrived, the forged would have
-        actor.put(k1.transitions("actor-1"), b"forged")
-        actor.put(k1.priorities, b"forged")
-        actor.put(k1.transitions("actor-0"), b"sentinel")
-        wait_until(lambda: at_replay.has("transitions/1/actor-0", b"sentinel"), 10, "actor-0's sentinel")
-        forged = [key for key, p in at_replay.items if p == b"forged"]
-        assert not forged, f"actor-0's login published {forged} on shard keys"
+        # (b) actor-0 publishes to shard 1 as actor-1, and priorities; then its own transitions
+        _forgeries_dropped(actor, [k1.transitions("actor-1"), k1.priorities], k1.transitions("actor-0"), at_replay,
+                           "transitions/1/actor-0")
 
         # only the replay answers shard 1's sample queries (actor-0 declared a queryable too)
         assert _answers(learner, k1.sample) == [b"from-replay"]
@@ -103,18 +115,13 @@ def test_league_keys_only_the_league_serves_and_actors_report_as_themselves(secu
         assert _answers(monitor, lk.table) == [b"table-from-league"]
         assert _answers(other, lk.table) == [], "an actor read the league table"
         # the league hears the learning agent's weights broadcast
-        wait_until(lambda: learner.put(agent.weights, b"agent-weights") or at_league.has("weights", b"agent-weights"),
-                   10, "the agent's weights at the league", 0.2)
+        _delivered(learner, agent.weights, b"agent-weights", at_league, "weights", "the agent's weights at the league")
 
         # actor-1's own result gets through; actor-0 reports as actor-1, then its own sentinel
-        wait_until(lambda: other.put(lk.results("actor-1"), b"own") or at_league.has("league/results/actor-1", b"own"),
-                   10, "actor-1's result at the league", 0.2)
-        actor.put(lk.results("actor-1"), b"forged")
-        actor.put(agent.weights, b"forged")
-        actor.put(lk.results("actor-0"), b"sentinel")
-        wait_until(lambda: at_league.has("league/results/actor-0", b"sentinel"), 10, "actor-0's own result")
-        forged = [key for key, p in at_league.items if p == b"forged"]
-        assert not forged, f"actor-0's login published {forged}"
+        _delivered(other, lk.results("actor-1"), b"own", at_league, "league/results/actor-1",
+                   "actor-1's result at the league")
+        _forgeries_dropped(actor, [lk.results("actor-1"), agent.weights], lk.results("actor-0"), at_league,
+                           "league/results/actor-0")
     finally:
         for n in (league, learner, actor, other, monitor):
             n.close()
