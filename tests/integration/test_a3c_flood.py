@@ -68,10 +68,14 @@ def test_a_flooding_worker_cannot_starve_an_honest_one(router, run_id, procs, tm
         # counted by name (the last one may still be queued when the worker stops)
         fates = sum(final.get(f"{k}/honest", 0) for k in ("applied_from", "stale_from", "queue_dropped_from"))
         assert fates >= sent - 2, f"{sent} sent: {got}"
-        # and most were applied: the stale ones are those the flood's turns, taken while the
-        # honest worker computes, moved more than a3c.max_staleness versions on; their share
-        # grows with the machine's load
-        assert final["applied_from/honest"] >= 0.75 * sent, f"{sent} sent: {got}"
+        # and most of those that reached their turn were applied: the stale ones are those the
+        # flood's turns, taken while the honest worker computes, moved more than
+        # a3c.max_staleness versions on; their share grows with the machine's load. Evicted ones
+        # are left out: the queue evicts an honest message only while the honest worker holds
+        # at least half the queue, i.e. sends faster than a loaded learner's turns serve it
+        # (its share of the turns is asserted above)
+        reached = sent - final.get("queue_dropped_from/honest", 0)
+        assert final["applied_from/honest"] >= 0.75 * reached, f"{sent} sent: {got}"
         assert final.get("rejected_from/honest", 0) == 0
         flood.send_signal(signal.SIGTERM)
         assert flood.wait(timeout=30) == 0, procs.log("flood")[-3000:]
