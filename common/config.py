@@ -264,6 +264,10 @@ class LeagueConfig(_Section):
     live_refresh_s: float = Field(30.0, gt=0, description="How often the weights of a learning agent served as an opponent (self-play, the exploiters' target) are refreshed.")
     opponent_epsilon: float = Field(0.05, ge=0, le=1, description="Random-action probability of a policy opponent in training matches.")
     prefetch: int = Field(8, ge=1, le=64, description="Opponent assignments each actor keeps requested ahead, so that a reset never waits for the league.")
+    ticket_rate_per_s: float = Field(5.0, gt=0, le=10000, description="Opponent assignments (each a ticket that one match result may answer) an actor id gets per second at most, on average: it bounds the results one actor can report. An honest actor needs about envs_per_actor per match duration; raise it for envs with matches of a few seconds.")
+    ticket_burst: int = Field(64, ge=1, le=100000, description="... and at most this many at once (at least prefetch).")
+    open_tickets_per_actor: int = Field(256, ge=1, le=100000, description="Assignments an actor id may hold unanswered; beyond it the oldest is dropped (an actor that restarted leaves its own behind).")
+    max_ticket_actors: int = Field(4096, ge=1, le=1000000, description="Actor ids whose tickets the league tracks; beyond it the least recently seen id is dropped with its tickets.")
     first_wait_s: float = Field(10.0, ge=0, le=120, description="An actor's first reset waits at most this long for the league's first assignment (later resets never wait: they fall back to the last opponent or the env's bots).")
     save_interval_s: float = Field(10.0, gt=0, description="The league writes its state this often (and on stop, and at once when a player joins or is reset).")
     stats_interval_s: float = Field(2.0, gt=0, description="How often the league publishes its stats.")
@@ -284,6 +288,9 @@ class LeagueConfig(_Section):
             raise ValueError(f"league.agents and league.bots share a player id: {ids}")
         if self.selfplay_share + self.bot_share > 1.0 + 1e-9:
             raise ValueError(f"league.selfplay_share + league.bot_share = {self.selfplay_share} + {self.bot_share} exceeds 1")
+        if self.ticket_burst < self.prefetch:
+            raise ValueError(f"league.ticket_burst {self.ticket_burst} is below league.prefetch {self.prefetch}: "
+                             "an actor's first assignments would be refused")
         if self.player is not None and self.player not in self.agents:
             raise ValueError(f"league.player {self.player!r} is not one of league.agents {sorted(self.agents)}")
         return self

@@ -15,8 +15,12 @@ and hears each match's result.
   opponent played, or to the env's own draw from ``env.kwargs.opponents`` (the bots);
 * a ``frozen`` opponent is this actor's own ``opponents.pool`` entry of that name (a policy
   file it loaded at start, as every actor of the run does);
-* every finished match is published as a :class:`~zenrl.common.protocol.MatchResult` on
-  ``league/results/<actor>`` (a bot drawn by the env is a league player too, under its name).
+* every finished match the league assigned is published as a
+  :class:`~zenrl.common.protocol.MatchResult` on ``league/results/<actor>``, citing the
+  assignment's ticket (league/tickets.py: the league counts one result per assignment); a match
+  the league did not assign (a fallback to the last opponent, the env's own draw) has no ticket
+  to cite and is not reported (``league/unticketed``). "busy" (asking faster than the league's
+  rate) backs off for a second, as a timeout does.
 
 The network work (decoding weights, building a network) happens in the actor's thread, at a
 reset; the Zenoh callbacks only append to a deque.
@@ -87,9 +91,12 @@ class LeagueChooser:
         self.generation: int | None = None  # pinned at the first answer: results carry it
         self._replies: collections.deque[tuple[str, bytes | None]] = collections.deque()
         self._inflight = 0
-        self._waiting: list[tuple[str, str, int]] = []   # (player, kind, version) whose weights are on the way
+        self._waiting: list[tuple[str, str, int, int]] = []   # (player, kind, version, ticket) whose weights are on the way
         self._fetching: set[tuple[str, int]] = set()
-        self.ready: collections.deque[str] = collections.deque()  # pool names, in the order assigned
+        self.ready: collections.deque[tuple[str, int]] = collections.deque()  # (pool name, ticket), in the order assigned
+        # tickets of the assignments handed to an episode and not reported yet, by pool name (the
+        # league only checks a ticket's pairing, so any open ticket of that name answers a match of it)
+        self._open: dict[str, collections.deque[int]] = {}
         self.last: str | None = None
         self.counts: collections.Counter[str] = collections.Counter()
         self._retry_at = 0.0
@@ -107,10 +114,11 @@ class LeagueChooser:
                 time.sleep(0.02)
                 self.pump(pool)
         while self.ready:
-            name = self.ready.popleft()
+            name, ticket = self.ready.popleft()
             if name in pool:
                 self.last = name
                 self.counts["assigned"] += 1
+                self._open.setdefault(name, collections.deque(maxlen=1024)).append(ticket)
                 return name
         self.counts["fallback"] += 1
         return self.last if self.last in pool else None
@@ -145,6 +153,8 @@ class LeagueChooser:
             return
         if rep.status != "ok":
             self.counts[f"reply_{rep.status}"] += 1
+            if rep.status == "busy":
+                self._retry_at = self.clock() + 1.0
             if rep.status == "unknown" and self.counts["reply_unknown"] == 1:  # once: the config is wrong
                 log.error("the league does not know player %s: %s; playing the env's own opponents",
                           self.player, rep.reason)
@@ -153,7 +163,7 @@ class LeagueChooser:
             self.generation = rep.generation
         if rep.kind == "frozen":  # a policy file of opponents.pool, loaded by this actor at start
             if rep.opponent in pool:
-                self.ready.append(rep.opponent)
+                self.ready.append((rep.opponent, rep.ticket))
             else:
                 self.counts["frozen_missing"] += 1
             return
@@ -161,13 +171,13 @@ class LeagueChooser:
             name = pool_name(rep.opponent, -1)
             if name not in pool:
                 pool.add(Opponent(name, "bot", 0.0, bot=rep.opponent))
-            self.ready.append(name)
+            self.ready.append((name, rep.ticket))
             return
         name = pool_name(rep.opponent, rep.version)
         if name in pool:
-            self.ready.append(name)
+            self.ready.append((name, rep.ticket))
             return
-        self._waiting.append((rep.opponent, rep.kind, rep.version))
+        self._waiting.append((rep.opponent, rep.kind, rep.version, rep.ticket))
         if (rep.opponent, rep.version) not in self._fetching:
             self._fetching.add((rep.opponent, rep.version))
             req = P.PlayerWeightsRequest(rep.opponent, rep.version).encode()
@@ -201,18 +211,19 @@ class LeagueChooser:
             log.warning("league weights for %s@%s not used: %s", *asked, e)
         # assignments waiting for these weights: ready if the pool holds the player now
         keep = []
-        for pid, kind, ver in self._waiting:
+        for pid, kind, ver, ticket in self._waiting:
             if (pid, ver) == asked:
                 if name is not None:
-                    self.ready.append(name)
+                    self.ready.append((name, ticket))
             else:
-                keep.append((pid, kind, ver))
+                keep.append((pid, kind, ver, ticket))
         self._waiting = keep
 
     # -- results ----------------------------------------------------------------------------------
     def report(self, r: LocalResult) -> None:
-        """Publish one finished match (``on_result`` of the wrapper). A match against an
-        opponent that is no league player (none of the league's bots) is not reported."""
+        """Publish one finished match (``on_result`` of the wrapper) with the ticket of its
+        assignment. A match against an opponent that is no league player is not reported
+        (``unreported``), nor one the league did not assign (``unticketed``)."""
         parsed = parse_pool_name(r.opponent)
         if parsed is None:
             if r.opponent not in self.bots and r.opponent not in self.frozen:
@@ -220,11 +231,16 @@ class LeagueChooser:
                 return
             parsed = (r.opponent, -1)
         opponent, version = parsed
+        tickets = self._open.get(r.opponent)
+        if not tickets:
+            self.counts["unticketed"] += 1
+            return
+        ticket = tickets.popleft()
         msg = P.MatchResult(actor_id=self.actor_id, player=self.player, generation=self.generation or 0,
                             player_version=max(-1, int(self.version_fn())), opponent=opponent,
                             opponent_version=version, outcome=_OUTCOMES[r.outcome],
                             my_score=max(0, min(int(r.my_score), P.MAX_MATCH_SCORE)),
-                            enemy_score=max(0, min(int(r.enemy_score), P.MAX_MATCH_SCORE)))
+                            enemy_score=max(0, min(int(r.enemy_score), P.MAX_MATCH_SCORE)), ticket=ticket)
         self.node.put(self.keys.results(self.actor_id), msg.encode())
         self.counts["reported"] += 1
 

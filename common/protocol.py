@@ -1306,11 +1306,15 @@ class OpponentReply(Message):
     queryable serves); ``generation``: the requesting player's (an actor reports it back with
     each result). "unknown": ``player`` is no learning agent of this league; "none": nobody can
     be played yet (fall back to a bot); ``reason`` says why. ``kind`` "frozen": the entry of
-    that name in the actor's own ``opponents.pool`` (a policy file it loaded itself)."""
+    that name in the actor's own ``opponents.pool`` (a policy file it loaded itself).
+    ``ticket`` (with "ok"): the assignment's number, which the match's :class:`MatchResult`
+    cites (league/tickets.py); 0 with any other status. "busy": this actor id asks faster than
+    ``league.ticket_rate_per_s``; ask again later."""
 
     TYPE: ClassVar[str] = "opponent_reply"
     SCHEMA: ClassVar[dict[str, str]] = {"status": "str", "player": "name", "generation": "uint",
-                                        "opponent": "str", "kind": "str", "version": "int", "reason": "str"}
+                                        "opponent": "str", "kind": "str", "version": "int", "reason": "str",
+                                        "ticket": "uint"}
     status: str
     player: str
     generation: int = 0
@@ -1318,10 +1322,11 @@ class OpponentReply(Message):
     kind: str = ""
     version: int = -1
     reason: str = ""
+    ticket: int = 0
 
     def _validate(self) -> None:
-        if self.status not in ("ok", "unknown", "none"):
-            raise ProtocolError("status", f"{self.status!r} is not ok, unknown or none", "field")
+        if self.status not in ("ok", "unknown", "none", "busy"):
+            raise ProtocolError("status", f"{self.status!r} is not ok, unknown, none or busy", "field")
         _league_int("generation", self.generation, 0)
         _league_int("version", self.version)
         if self.status == "ok":
@@ -1379,12 +1384,15 @@ class MatchResult(Message):
     """Actor -> league: one finished match of learning player ``player`` (its ``generation`` as
     the league last told this actor, acting with weights ``player_version``; -1 before any)
     against ``opponent`` (at ``opponent_version``, -1 for a bot); ``outcome`` from ``player``'s
-    side: +1 win, 0 draw, -1 loss; the scores as the judge counted them."""
+    side: +1 win, 0 draw, -1 loss; the scores as the judge counted them. ``ticket``: the number
+    of the assignment this match answers (:class:`OpponentReply`); the league counts a result
+    only against an open ticket of this actor for this player, opponent and version, once."""
 
     TYPE: ClassVar[str] = "match_result"
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "player": "name", "generation": "uint",
                                         "player_version": "int", "opponent": "name", "opponent_version": "int",
-                                        "outcome": "int", "my_score": "uint", "enemy_score": "uint"}
+                                        "outcome": "int", "my_score": "uint", "enemy_score": "uint",
+                                        "ticket": "uint"}
     actor_id: str
     player: str
     generation: int
@@ -1394,6 +1402,7 @@ class MatchResult(Message):
     outcome: int
     my_score: int = 0
     enemy_score: int = 0
+    ticket: int = 0
 
     def _validate(self) -> None:
         if self.outcome not in (-1, 0, 1):

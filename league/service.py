@@ -5,14 +5,17 @@ league, a process of its own behind Zenoh, run by the role loop (``alive/league/
 Keys (:class:`zenrl.common.protocol.LeagueKeys`, under ``zenrl/<run>/league/``):
 
 * ``opponent`` (queryable): :class:`OpponentRequest` -> :class:`OpponentReply`, an opponent
-  drawn from the requesting learning agent's mix (:meth:`League.distribution`);
+  drawn from the requesting learning agent's mix (:meth:`League.distribution`), with a ticket
+  (:mod:`zenrl.league.tickets`); an actor id that asks faster than ``league.ticket_rate_per_s``
+  gets "busy" (counted as ``rejected_request_rate``);
 * ``weights`` (queryable): :class:`PlayerWeightsRequest` -> :class:`PlayerWeights`, the
   weights of a snapshot or the served copy of a learning agent's (actors cache them by id and
   version);
 * ``table`` (queryable): the players and the payoff table, for ``zenrl league status``;
 * ``results/*`` (subscriber): :class:`MatchResult` of every finished match; a result that does
   not decode, names a player or opponent the league does not hold, an opponent version it never
-  served, or a generation ahead of the player's, is rejected and counted by reason
+  served, a generation ahead of the player's, or cites no ticket open for that actor and that
+  pairing (``ticket_unknown``, ``ticket_mismatch``), is rejected and counted by reason
   (``rejected_<reason>``), nothing else changes;
 * each learning agent's weights broadcast (``zenrl/<run>.<agent>/weights``, the agent's own
   run id): only the newest payload is kept in the callback; it is decoded in the role's step,
@@ -45,6 +48,7 @@ from zenrl.common.roles import Cadence, RoleLoop, Supervisor
 from zenrl.common.transport import Node
 from zenrl.league.core import BOT, FROZEN, LEARNER, SNAPSHOT, League, LearnerWeights, agent_run_id
 from zenrl.league.store import LeagueStore
+from zenrl.league.tickets import TicketBook
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +83,10 @@ class LeagueService:
             log.info("league restored from %s: %d players, %d results", self.store.dir, len(self.league.players),
                      self.league.results_total)
         self.rng = np.random.default_rng(cfg.seed)
+        lc = self.lcfg
+        # ticket numbers must not be guessable: their own stream, from the OS, not the run's seed
+        self.tickets = TicketBook(lc.ticket_rate_per_s, lc.ticket_burst, lc.open_tickets_per_actor,
+                                  lc.max_ticket_actors, np.random.default_rng(), clock)
         self.lock = threading.Lock()
         self.rejects = RejectCounter(log, "league input")
         self.results_rate, self.requests_rate = RateMeter(), RateMeter()
@@ -148,6 +156,8 @@ class LeagueService:
                 v[f"since_games/{aid}"] = n
                 v[f"since_win_rate/{aid}"] = round(rate, 4)
             dist = lg.distribution(lg.main_id)
+            v["tickets_open"] = self.tickets.open_count()
+            v["tickets_dropped"] = self.tickets.dropped_tickets
         v["results_per_s"] = self.results_rate.rate()
         v["requests_per_s"] = self.requests_rate.rate()
         v["main_pfsp_entropy"] = -sum(p * math.log(p) for p in dist.values() if p > 0)
@@ -209,7 +219,7 @@ class LeagueService:
             live = lg.live.get(m.opponent)
             if live is not None and m.opponent_version > live.version:
                 return "opponent_version", f"{m.opponent} was never served version {m.opponent_version}"
-        return None
+        return self.tickets.redeem(m.actor_id, m.ticket, m.player, m.opponent, m.opponent_version)
 
     def _answer(self, handler: Callable[[bytes], bytes | None], payload: bytes) -> bytes | None:
         """``handler(payload)``; an unexpected error costs only this query (no reply: the asker
@@ -242,10 +252,18 @@ class LeagueService:
                 else:
                     o = lg.players[oid]
                     w = lg.weights_of(oid)
-                    reply = P.OpponentReply("ok", req.player, p.generation, oid, o.kind,
-                                            -1 if w is None else w.version)
+                    version = -1 if w is None else w.version
+                    ticket = self.tickets.issue(req.actor_id, req.player, oid, version)
+                    if ticket is None:
+                        reply = P.OpponentReply("busy", req.player, p.generation, reason=(
+                            f"{req.actor_id} asks faster than league.ticket_rate_per_s "
+                            f"{self.lcfg.ticket_rate_per_s:g}/s"))
+                    else:
+                        reply = P.OpponentReply("ok", req.player, p.generation, oid, o.kind, version, ticket=ticket)
         if reply.status == "unknown":
             self.rejects.reject("request_unknown_player", reply.reason, req.actor_id)
+        elif reply.status == "busy":
+            self.rejects.reject("request_rate", reply.reason, req.actor_id)
         return reply.encode()
 
     def on_weights(self, payload: bytes) -> bytes | None:

@@ -2,8 +2,8 @@
 actor`s playing real pybullet matches): every finished match is reported and counted in the
 payoff table, the exploiter plays the main agent's weights fetched from the league, the league
 answers PFSP-weighted opponents (empirical frequencies against its distribution), a hostile
-result is counted and rejected without changing the table, and a restarted league comes back
-with its state."""
+result (a forged or replayed ticket among them) is counted and rejected without changing the
+table, and a restarted league comes back with its state."""
 
 import json
 import subprocess
@@ -34,6 +34,8 @@ def config(tmp_path, run_id, algo="apex"):
            "league": {"enabled": True, "bots": ["cheese", "teriyaki"], "decay": 1.0, "selfplay_share": 0.3,
                       "live_refresh_s": 1.0, "min_games": 100000, "snapshot_interval_s": 100000,
                       "exploiter_reset_s": 100000, "stats_interval_s": 0.5, "save_interval_s": 1.0,
+                      # 8 s matches end faster than the rate meant for real ones (tests/unit has the rate)
+                      "ticket_rate_per_s": 10000, "ticket_burst": 10000,
                       "agents": {"main": {"role": "main"}, "exploiter": {"role": "exploiter"}}}}
     path = tmp_path / "league.yaml"
     path.write_text(yaml.safe_dump(doc))
@@ -77,6 +79,7 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
                         params=params_to_arrays(net)).encode()
     with Node(router, 10.0) as node:
         stats = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
+        heard = node.subscribe_latest(P.LeagueKeys(run_id).results_all)  # the actors' own results, to replay one
         wait_until(lambda: node.alive_now(P.Keys(run_id).alive_role("league"), 1.0), 60, "the league's token")
         main_weights = P.Keys(f"{run_id}.main").weights
 
@@ -105,28 +108,42 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
         exploiter_log = procs.log("exploiter-actor")
         assert "Traceback" not in exploiter_log, exploiter_log[-3000:]
 
-        # a hostile sender: garbage, an unknown opponent, an absurd score; counted and rejected
+        # a hostile sender: garbage, an unknown opponent, an absurd score, a result without an
+        # assignment (a made-up ticket), a real actor's result sent again; counted and rejected
         before = table(node, run_id)
+        replayed = heard.take()
+        assert replayed is not None and P.MatchResult.decode(replayed).ticket > 0
         bad_key = P.LeagueKeys(run_id).results("evil")
         node.put(bad_key, b"\x00not msgpack")
         node.put(bad_key, P.MatchResult("evil", "main", 0, 1, "nobody", -1, 1).encode())
         node.put(bad_key, P.MatchResult("evil", "main", 0, 1, "cheese", -1, 1, my_score=10**6).encode())
         node.put(bad_key, P.MatchResult("evil", "main", 0, 1, "cheese", 3, 1).encode())
+        node.put(bad_key, P.MatchResult("evil", "main", 0, 1, "cheese", -1, 1, ticket=123456789).encode())
+        node.put(P.LeagueKeys(run_id).results(P.MatchResult.decode(replayed).actor_id), replayed)
 
         def rejected():
             v = league_stats(stats)
-            return v if v and v.get("rejected_total", 0) >= 4 else None
+            return v if v and v.get("rejected_total", 0) >= 6 else None
 
-        v = wait_until(rejected, 30, "the league's stats counting 4 rejections")
+        v = wait_until(rejected, 30, "the league's stats counting 6 rejections")
         assert v["rejected_malformed"] == 1 and v["rejected_unknown_opponent"] == 1
         assert v["rejected_field"] == 1 and v["rejected_opponent_version"] == 1
+        assert v["rejected_ticket_unknown"] == 2
         after = table(node, run_id)
         assert np.array_equal(before.counts, after.counts)
 
-        # PFSP: main wins every match against cheese (published as a third actor would), so
-        # cheese must be drawn rarely; the empirical frequencies follow the league's distribution
-        for _ in range(40):
-            node.put(P.LeagueKeys(run_id).results("a9"), P.MatchResult("a9", "main", 0, 7, "cheese", -1, 1).encode())
+        # PFSP: main wins every match against cheese (published as a third actor would: it asks
+        # for assignments and reports a win for each cheese one), so cheese must be drawn rarely;
+        # the empirical frequencies follow the league's distribution
+        ask = P.OpponentRequest("main", "a9").encode()
+        cheese = []
+        while len(cheese) < 40:
+            rep = P.OpponentReply.decode(node.query(P.LeagueKeys(run_id).opponent, ask, 5.0))
+            if rep.opponent == "cheese":
+                cheese.append(rep.ticket)
+        for ticket in cheese:
+            node.put(P.LeagueKeys(run_id).results("a9"),
+                     P.MatchResult("a9", "main", 0, 7, "cheese", -1, 1, ticket=ticket).encode())
         wait_until(lambda: sum(wdl(table(node, run_id), "main", "cheese")) >= sum(wdl(after, "main", "cheese")) + 40,
                    30, "the 40 results counted")
         t = table(node, run_id)

@@ -156,11 +156,13 @@ def test_results_reach_the_table(tmp_path):
     name = ch(pool, rng)
     assert parse_pool_name(name) == ("main", 3)
     ch.report(MatchResult(name, "red", "win", 9, 1))
-    ch.report(MatchResult("cheese", "blue", "loss", 0, 10))    # the env's own draw: a league bot
+    ch.report(MatchResult(name, "red", "win", 9, 1))           # one assignment, one result
+    ch.report(MatchResult("cheese", "blue", "loss", 0, 10))    # the env's own draw: the league assigned none
     ch.report(MatchResult("None", "blue", "loss", 0, 10))      # an episode no one chose: not reported
     assert svc.league.payoff.wdl("exploiter", "main") == (1, 0, 0)
-    assert svc.league.payoff.wdl("exploiter", "cheese") == (0, 0, 1)
-    assert ch.counts["reported"] == 2 and ch.counts["unreported"] == 1
+    assert svc.league.payoff.wdl("exploiter", "cheese") == (0, 0, 0)
+    assert ch.counts["reported"] == 1 and ch.counts["unticketed"] == 2 and ch.counts["unreported"] == 1
+    assert svc.rejects.total == 0
     assert svc.league.since_rate("exploiter", ["main"]) == (1.0, 1)
 
 

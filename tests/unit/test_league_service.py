@@ -43,6 +43,7 @@ def make(tmp_path, clock, *sets):
     node = FakeNode()
     svc = LeagueService(cfg, node, "lg", directory=tmp_path / "league", clock=clock)
     svc.start(node, None)
+    node.svc = svc
     return svc, node
 
 
@@ -54,14 +55,18 @@ def broadcast(node, agent, version, updates=None):
 
 
 def result(node, actor="a0", **kw):
+    """Publish a result of ``actor``; unless ``ticket`` is given, with a ticket the league issued
+    for that very pairing (as if the league had assigned it)."""
     m = dict(actor_id=actor, player="main", generation=0, player_version=1, opponent="cheese",
              opponent_version=-1, outcome=1, my_score=7, enemy_score=2)
     m.update(kw)
+    if "ticket" not in kw:
+        m["ticket"] = node.svc.tickets.issue(actor, m["player"], m["opponent"], m["opponent_version"])
     node.subs[P.LeagueKeys("lg").results_all](f"zenrl/lg/league/results/{actor}", P.MatchResult(**m).encode())
 
 
-def ask(node, player="main"):
-    rep = node.queryables[P.LeagueKeys("lg").opponent](P.OpponentRequest(player, "a0").encode())
+def ask(node, player="main", actor="a0"):
+    rep = node.queryables[P.LeagueKeys("lg").opponent](P.OpponentRequest(player, actor).encode())
     return P.OpponentReply.decode(rep)
 
 
@@ -98,6 +103,37 @@ def test_results_are_counted_and_hostile_ones_rejected(tmp_path):
     assert svc.league.payoff.wdl("main", "cheese") == (2, 0, 0)
 
 
+def test_a_result_counts_only_against_an_open_ticket_of_its_actor_once(tmp_path):
+    clock = Clock()
+    svc, node = make(tmp_path, clock, "league.ticket_rate_per_s=2", "league.ticket_burst=8",
+                     "league.prefetch=4", "league.open_tickets_per_actor=3")
+    rep = ask(node)  # a bot, a frozen file or main itself: whatever PFSP drew
+    assert rep.status == "ok" and rep.ticket > 0
+    good = dict(player="main", opponent=rep.opponent, opponent_version=rep.version, ticket=rep.ticket)
+    result(node, **good)
+    assert svc.league.results_total == 1
+    result(node, **good)                                    # the same result again: the ticket is spent
+    result(node, **{**good, "ticket": rep.ticket ^ 1})      # a ticket never issued
+    rep2 = ask(node)
+    result(node, actor="a1", **{**good, "ticket": rep2.ticket})  # a0's ticket, reported by a1
+    other = "teriyaki" if rep2.opponent != "teriyaki" else "cheese"
+    result(node, **{**good, "opponent": other, "opponent_version": -1, "ticket": rep2.ticket})  # another pairing
+    result(node, **{**good, "opponent": rep2.opponent, "opponent_version": rep2.version, "ticket": rep2.ticket})
+    vals, _ = svc.report(1.0)
+    assert vals["rejected_ticket_unknown"] == 4 and vals["rejected_ticket_mismatch"] == 1
+    assert svc.league.results_total == 1  # a misused ticket is spent too
+    # the rate: 8 at once (2 spent above), then 2 a second
+    got = [ask(node).status for _ in range(8)]
+    assert got == ["ok"] * 6 + ["busy"] * 2
+    assert svc.report(1.0)[0]["rejected_request_rate"] == 2
+    assert ask(node, actor="a2").status == "ok"  # another actor has its own bucket
+    clock.t += 1.0
+    assert [ask(node).status for _ in range(3)] == ["ok", "ok", "busy"]
+    # at most 3 open per actor: the oldest of a0's went, the newest still count
+    assert svc.tickets.open_count("a0") == 3 and svc.tickets.dropped_tickets > 0
+    assert svc.report(1.0)[0]["tickets_open"] == 4
+
+
 def test_opponents_follow_pfsp_and_weights_are_served(tmp_path):
     clock = Clock()
     svc, node = make(tmp_path, clock)
@@ -119,7 +155,10 @@ def test_opponents_follow_pfsp_and_weights_are_served(tmp_path):
     f = np.array([(1 - 3.5 / 4) ** 2, 0.25])
     assert dist["cheese"] == pytest.approx(0.65 * f[0] / f.sum())
     n = 4000
-    got = [ask(node).opponent for _ in range(n)]
+    got = []
+    for i in range(n):
+        clock.t += 1.0  # one assignment a second: within the ticket rate
+        got.append(ask(node).opponent)
     for k, p in dist.items():
         assert got.count(k) / n == pytest.approx(p, abs=0.03)
 
