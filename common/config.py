@@ -268,6 +268,7 @@ class LeagueConfig(_Section):
     ticket_burst: int = Field(64, ge=1, le=100000, description="... and at most this many at once (at least prefetch).")
     open_tickets_per_actor: int = Field(256, ge=1, le=100000, description="Assignments an actor id may hold unanswered; beyond it the oldest is dropped (an actor that restarted leaves its own behind).")
     max_ticket_actors: int = Field(4096, ge=1, le=1000000, description="Actor ids whose tickets the league tracks; beyond it the least recently seen id is dropped with its tickets.")
+    self_reset: bool = Field(True, description="For a cluster (compose, Kubernetes, several hosts), where no zenrl run restarts an agent's processes: a replay, learner or actor of an agent (--agent) that hears the league start a new generation of its agent deletes the old generation's files and exits with status 75, for its restart policy to start it afresh (docs/cluster.md). zenrl run turns it off for its children (it restarts a reset agent itself).")
     first_wait_s: float = Field(10.0, ge=0, le=120, description="An actor's first reset waits at most this long for the league's first assignment (later resets never wait: they fall back to the last opponent or the env's bots).")
     save_interval_s: float = Field(10.0, gt=0, description="The league writes its state this often (and on stop, and at once when a player joins or is reset).")
     stats_interval_s: float = Field(2.0, gt=0, description="How often the league publishes its stats.")

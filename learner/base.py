@@ -17,6 +17,7 @@ from zenrl.common.config import RunConfig, config_from_dict
 from zenrl.common.checkpoints import TrainingState
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import CheckpointError
+from zenrl.common.league_reset import GenerationWatch
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import num_actions, obs_spec, resolve_device
 from zenrl.common.roles import Cadence, RoleLoop
@@ -141,4 +142,7 @@ class LearnerBase:
 
     def run(self, stop: threading.Event) -> None:
         cadence = Cadence(self.cfg.learner.log_interval_s, self.cfg.learner.checkpoint_interval_s)
+        watch = GenerationWatch.for_config(self.cfg, self.node, self.keys.run_id, "learner", stop)  # league.self_reset
         RoleLoop(self.node, self.keys, "learner", self.id, cadence, MetricsWriter(self.run_dir)).run(self, stop)
+        if watch is not None:
+            watch.finish([self.ckpt_dir])  # a new generation: its learner starts without them

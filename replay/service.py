@@ -37,6 +37,7 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import TransportError
+from zenrl.common.league_reset import GenerationWatch
 from zenrl.common.roles import Cadence, RoleLoop, Supervisor, WatchedThread
 from zenrl.common.transport import Node
 from zenrl.replay.checks import Checker, ChunkChecker, SequenceChecker
@@ -65,10 +66,13 @@ class ReplayService:
         self.max_bytes = cfg.transport.max_message_bytes
         self._lock = threading.Lock()
         self.journal: Journal | None = None
+        #: the durable log's folder (None: not durable)
+        self.log_dir: Path | None = None
         if rcfg.durable:
             log_dir = rcfg.log_dir or str(Path(cfg.runs_dir) / run_id / "replay")
             if self.shard is not None:
                 log_dir = str(Path(log_dir) / f"shard-{self.shard}")
+            self.log_dir = Path(log_dir)
             self.journal = Journal(log_dir, rcfg.segment_items or max(1, rcfg.capacity // 8), rcfg.flush_interval_s,
                                    rcfg.snapshot_interval_s, rcfg.durable_retry_s, rcfg.durable_backlog_bytes)
         checker = make_checker(cfg) if rcfg.check_semantics else None
@@ -299,6 +303,9 @@ def main(cfg: RunConfig, run_id: str, stop: threading.Event, service_id: str = "
         log.info("malloc tuning not available here: chunk buffers are allocated fresh each time")
     with Node.from_config(cfg.transport, max_rx_bytes=rx_cap(cfg)) as node:
         svc = ReplayService(cfg, node, run_id, service_id, stop, shard)
+        watch = GenerationWatch.for_config(cfg, node, run_id, svc.id, stop)  # league.self_reset
         # idle waits no longer than the stats interval, so that a short one is kept
         cadence = Cadence(cfg.replay.stats_interval_s, idle_s=min(0.5, cfg.replay.stats_interval_s))
         RoleLoop(node, svc.keys, "replay", svc.id, cadence).run(svc, stop)
+        if watch is not None:
+            watch.finish([svc.log_dir] if svc.log_dir is not None else [])

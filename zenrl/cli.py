@@ -44,12 +44,13 @@ def quiet_zenoh(level: str) -> None:
 #: ``section.field`` (a role's ``--help`` lists these; ``zenrl run`` passes every option on).
 ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     # the replay checks R2D2's sequences (of r2d2's length and state size) when algo says so
-    "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2"),
+    # a league agent's processes (--agent) take their config from league.agents, and reset on its generations
+    "replay": ("algo", "run_id", "runs_dir", "seed", "replay", "transport", "env", "actor.n_step", "r2d2", "league"),
     "learner": ("algo", "run_id", "runs_dir", "seed", "max_updates", "learner", "a3c", "impala", "r2d2", "network",
-                "env", "transport", "actor.num_actors", "replay.shards"),
+                "env", "transport", "actor.num_actors", "replay.shards", "league"),
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
               "env", "transport", "learner.gamma", "league", "replay.shards"),
-    "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport"),
+    "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport", "league"),
     "exporter": ("run_id", "transport", "actor.num_actors"),
     "league": ("run_id", "runs_dir", "seed", "league", "opponents.pool", "transport"),
 }
@@ -99,6 +100,7 @@ def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConf
 
 
 def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
+    from zenrl.common.league_reset import EXIT_GENERATION, GenerationReset
     from zenrl.common.roles import RoleFailed
     from zenrl.common.transport import install_stop_signals
     from zenrl.identity import check_dev_credentials
@@ -109,6 +111,8 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
         log.info("cpu placement: CPUs %s, nice +%d", placed.cpus, placed.nice)
     try:
         cfg = resolve(args)
+        if getattr(args, "agent", None):
+            cfg = _agent_config(cfg, args.agent)
         check_dev_credentials(cfg.transport.client_config, args.allow_dev_credentials)
         run_id = cfg.run_id or "default"
         stop = threading.Event()
@@ -119,11 +123,31 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
         log.error("%s", e)
         sys.stderr.write(f"zenrl: error: {e}\n")
         return EXIT_CONFIG
+    except GenerationReset as e:  # league.self_reset: the restart policy starts this process afresh
+        log.warning("%s", e)
+        return EXIT_GENERATION
     except RoleFailed as e:  # the loop cannot go on: exit non-zero so the launcher or engine restarts it
         log.error("%s", e)
         sys.stderr.write(f"zenrl: error: {role} cannot go on: {e}\n")
         return 1
     return 0
+
+
+def _agent_config(cfg: RunConfig, agent: str) -> RunConfig:
+    """``--agent``: the config of one learning agent's processes of the league in ``cfg`` (run
+    id ``<run>.<agent>``, its overrides), as ``zenrl run`` resolves it for its own children."""
+    from zenrl.launcher.league_run import agent_configs, check_league
+
+    if not cfg.league.enabled:
+        raise ConfigError(f"--agent {agent}: the config has no league (league.enabled is false)")
+    if agent not in cfg.league.agents:
+        raise ConfigError(f"--agent {agent!r} is not one of league.agents {sorted(cfg.league.agents)}")
+    check_league(cfg)
+    lc = cfg.league
+    if lc.self_reset and lc.exploiter_init == "main" and lc.agents[agent].role == "exploiter":
+        raise ConfigError(f"--agent {agent}: league.exploiter_init main needs zenrl run (it hands the reset exploiter "
+                          "main's checkpoint); a cluster's exploiters start fresh: set league.exploiter_init: fresh")
+    return agent_configs(cfg, cfg.run_id or "default")[agent]
 
 
 def _watch_parent(stop: threading.Event) -> None:
@@ -496,6 +520,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("replay", help="the prioritized replay service", epilog=_options_epilog("replay"), formatter_class=fmt)
     _add_config_args(s)
     s.add_argument("--id", default=None, help="service id (default: replay, or replay-<k> for shard k)")
+    s.add_argument("--agent", metavar="ID", help="a league agent's process (a key of league.agents): its run id "
+                   "<run>.<ID> and overrides, as zenrl run gives them (a cluster's league; docs/cluster.md)")
     s.add_argument("--shard", type=int, default=None, metavar="K",
                    help="this service's shard when replay.shards > 1 (0..shards-1; also $ZENRL_REPLAY_SHARD)")
     _add_credential_args(s)
@@ -503,6 +529,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("learner", help="the learner", epilog=_options_epilog("learner"), formatter_class=fmt)
     _add_config_args(s)
+    s.add_argument("--agent", metavar="ID", help="a league agent's process (a key of league.agents): its run id "
+                   "<run>.<ID> and overrides, as zenrl run gives them (a cluster's league; docs/cluster.md)")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_const", const="require", dest="resume", default="never",
                    help="continue from the newest valid checkpoint of the run (an error if there is none)")
@@ -517,6 +545,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="actor id (default: actor-<host>-<pid>; in secured mode the login's, actor-<i>)")
     s.add_argument("--slot", type=int, default=None,
                    help="exploration slot (default: from config or the running system; in secured mode the login's, <i>)")
+    s.add_argument("--agent", metavar="ID", help="a league agent's process (a key of league.agents): its run id "
+                   "<run>.<ID> and overrides, as zenrl run gives them (a cluster's league; docs/cluster.md)")
     s.add_argument("--logins", metavar="DIR",
                    help="secured mode: take the first free actor login (client-actor-<i>.json5) of DIR as "
                         "transport.client_config (also $ZENRL_ACTOR_LOGINS; replicas of one template)")
@@ -526,6 +556,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("evaluator", help="greedy evaluation of the latest weights", epilog=_options_epilog("evaluator"),
                        formatter_class=fmt)
     _add_config_args(s)
+    s.add_argument("--agent", metavar="ID", help="the league's main agent (a key of league.agents): its run id "
+                   "<run>.<ID>, as zenrl run gives it (a cluster's league; docs/cluster.md)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_evaluator)
 

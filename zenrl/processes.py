@@ -16,6 +16,7 @@ from zenrl.actor.slots import claim_slot
 from zenrl.algorithms import algorithm
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
+from zenrl.common.league_reset import GenerationWatch
 from zenrl.common.transport import Node
 
 
@@ -43,7 +44,10 @@ def actor_main(cfg: RunConfig, run_id: str, stop: threading.Event, actor_id: str
     if slot is None and bound_slot is None:
         slot = cfg.actor.slot
     with Node.from_config(cfg.transport) as node:
+        watch = GenerationWatch.for_config(cfg, node, run_id, "actor", stop, stateful=False)  # league.self_reset
         if slot is None:
             slot, _ = claim_slot(node, P.Keys(run_id), actor_id, only=bound_slot)
             num_slots = None
         algorithm(cfg.algo).actor(cfg, node, run_id, actor_id, slot, num_slots, stop)
+        if watch is not None:
+            watch.finish([])

@@ -38,6 +38,8 @@ def test_league_run_snapshots_and_resets(tmp_path, run_id):
     # the reset exploiter started from main's newest checkpoint (league.exploiter_init: main)
     assert "exploiter starts from main's ckpt-" in p.stderr, p.stderr[-3000:]
     assert "initial weights from" in (run_dir / "logs" / "exploiter-learner.log").read_text()
+    # zenrl run restarts a reset agent itself: its children never stop on their own (league.self_reset)
+    assert not [f.name for f in (run_dir / "logs").glob("*.log") if "to be started afresh" in f.read_text()]
     counts = {(a, b): (w, d, l_) for a, b, w, d, l_ in state["payoff"]["counts"]}
     assert sum(counts.get(("exploiter", "main"), (0, 0, 0))) >= 1, counts
     assert sum(sum(v) for (a, _), v in counts.items() if a == "main") >= 4, counts

@@ -164,7 +164,9 @@ class Launcher:
         if self.cfg.league.enabled:
             from zenrl.launcher.league_run import agent_configs
 
-            self.agents = agent_configs(self.cfg, self.run_id)
+            # this launcher restarts a reset agent's processes itself: they must not exit on their own
+            self.agents = {a: c.model_copy(update={"league": c.league.model_copy(update={"self_reset": False})})
+                           for a, c in agent_configs(self.cfg, self.run_id).items()}
             self.placement = None  # several learners share the CPUs: left to the OS
 
     def _stop_with(self, reason: str, exit_code: int = 0) -> None:
