@@ -44,6 +44,7 @@ pytestmark = pytest.mark.integration
 
 COMPOSE = ROOT / "docker-compose.yml"
 SECURE = ROOT / "docker-compose.secure.yml"
+LEAGUE = ROOT / "docker-compose.league.yml"
 DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 ZENOH_DIR = ROOT / "deploy" / "zenoh"
 CERTS_DIR = ZENOH_DIR / "certs"  # written by gen-certs.sh, not in git
@@ -100,11 +101,12 @@ def load_compose(*files: Path, env: dict[str, str] | None = None) -> dict[str, A
     """The merged, interpolated compose model of ``files`` (later files override)."""
     model: dict[str, Any] = {"services": {}, "volumes": {}}
     for f in files:
-        doc = yaml.safe_load(f.read_text())
+        # interpolated before merging, as compose does: volumes merge by their (interpolated) target
+        doc = interpolate(yaml.safe_load(f.read_text()), dict(env or {}))
         for name, svc in doc.get("services", {}).items():
             model["services"][name] = _merge_service(model["services"].get(name, {}), svc)
         model["volumes"].update(doc.get("volumes") or {})
-    return interpolate(model, dict(env or {}))
+    return model
 
 
 def raw_variables(*files: Path) -> list[tuple[str, str | None]]:
@@ -157,7 +159,7 @@ def test_compose_files_are_complete_and_consistent():
     from zenrl.cli import build_parser
     from zenrl.common.config import load_config
 
-    for files in ((COMPOSE,), (COMPOSE, SECURE)):
+    for files in ((COMPOSE,), (COMPOSE, SECURE), (COMPOSE, LEAGUE)):
         # every variable has a default: `docker compose up` needs no .env
         for name, default in raw_variables(*files):
             assert default is not None, f"${{{name}}} in {[f.name for f in files]} has no default"
@@ -222,6 +224,8 @@ def test_compose_files_are_complete_and_consistent():
             if svc.get("restart") != "no":
                 assert svc.get("restart") in ("always", "unless-stopped", "on-failure"), name
 
+        if files[-1] == LEAGUE:
+            _check_league_services(zs, parser)
         for name, svc in setup_services(model).items():
             parser.parse_args(svc["command"])
         actor = zs["actor"]
@@ -231,6 +235,42 @@ def test_compose_files_are_complete_and_consistent():
             assert "--auto-resume" in zs[name]["command"]
             assert int(zs[name]["stop_grace_period"].rstrip("s")) >= 30, "the learner needs time to checkpoint"
         assert zs["learner-gpu"]["deploy"]["resources"]["reservations"]["devices"][0]["capabilities"] == ["gpu"]
+
+
+def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
+    """The league overlay: the league service, and every agent of the config's league has its
+    replay, learner and actors (--agent), whose resolved configs are that agent's."""
+    from zenrl.cli import _agent_config
+    from zenrl.common.config import load_config
+
+    assert {"league", "league-status", "replay-exploiter", "learner-exploiter", "actor-exploiter"} <= set(zs)
+    named = {"runs": Path("/nonexistent")}
+    by_agent: dict[str, set[str]] = {}
+    for name, svc in zs.items():
+        args = parser.parse_args(svc["command"])
+        env = {k: str(v) for k, v in svc["environment"].items()}
+        cfg = load_config(host_path(svc, args.config, named), environ=env)
+        assert cfg.league.enabled, name
+        if name in ("exporter", "status"):  # they watch the main agent's processes
+            assert cfg.run_id == "league-cluster.main", name
+            continue
+        assert cfg.run_id == "league-cluster", name
+        if name in ("league", "league-status"):
+            continue
+        assert getattr(args, "agent", None), f"{name}: a league cluster's {args.command if hasattr(args, 'command') else name} needs --agent"
+        acfg = _agent_config(cfg, args.agent)
+        assert acfg.run_id == f"league-cluster.{args.agent}" and acfg.league.self_reset, name
+        by_agent.setdefault(args.agent, set()).add(svc["command"][0])
+        if svc["command"][0] == "learner":
+            assert "--auto-resume" in svc["command"], name
+        if svc["command"][0] == "actor":
+            assert "--slot" not in svc["command"] and "--id" not in svc["command"], name
+        if svc["command"][0] in ("replay", "learner"):
+            assert any(parse_volume(v)[1] == "/runs" for v in svc["volumes"]), name
+            assert svc.get("restart") == "unless-stopped", name  # a reset exits 75 for the engine to restart
+    assert set(by_agent) == set(cfg.league.agents)
+    for agent, roles in by_agent.items():
+        assert {"replay", "learner", "actor"} <= roles, (agent, roles)
 
 
 def test_secure_compose_makes_fresh_credentials(tmp_path):
@@ -908,3 +948,60 @@ def test_docker_image_runs_zenrl_run_from_any_directory(docker_images, workdir):
                         "--set", "target_return=null", "--set", "max_wall_s=240"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "max_updates 200 reached" in r.stdout + r.stderr, docker_output(r)
+
+
+@pytest.mark.timeout(1800)
+def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_path):
+    """docker-compose.league.yml on a real engine: the league and both agents' services come up
+    (--agent); when the league starts the exploiter's next generation, its replay, learner and
+    actor containers exit with status 75 by themselves, the engine's restart policy starts them
+    again, and the new generation plays matches; the main agent's services are not restarted."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    doc = yaml.safe_load((ROOT / "configs" / "cluster_league.yaml").read_text())
+    doc["env"]["kwargs"].update(match_time=6.0, sudden_death_time=2.0)  # matches of at most 40 steps
+    doc["league"].update(exploiter_reset_s=45, stats_interval_s=0.5, ticket_rate_per_s=1000, ticket_burst=1000,
+                         agents={"main": {"role": "main", "envs_per_actor": 4},
+                                 "exploiter": {"role": "exploiter", "envs_per_actor": 2,
+                                               "overrides": {"replay.capacity": 5000}}})
+    doc["network"]["hidden"] = [32]
+    doc["replay"].update(capacity=20000, min_size=200)
+    doc["learner"].update(batch_size=32, checkpoint_interval_s=5)
+    doc["evaluator"].update(interval_s=30, episodes=2)
+    cfg_path = tmp_path / "league.yaml"
+    cfg_path.write_text(yaml.safe_dump(doc))
+    cfg_path.chmod(0o644)
+    cluster = DockerCluster((COMPOSE, LEAGUE), run_id, docker_images, actors=1)
+    cluster.env.update(ZENRL_LEAGUE_CONFIG=str(cfg_path), ZENRL_EXPLOITER_ACTORS="1")
+
+    def restarts(service: str) -> int:
+        return sum(int(cluster.inspect(c, "{{.RestartCount}}")) for c in cluster.containers(service))
+
+    try:
+        cluster.compose("up", "-d", timeout=900)
+        with Node(cluster.endpoint, 60.0) as node:
+            stats = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
+            seen: dict[str, Any] = {}
+
+            def league(key: str, want: int) -> bool:
+                raw = stats.take()
+                if raw is not None:
+                    seen.update(P.Stats.decode(raw).values)
+                return int(seen.get(key, 0)) >= want
+
+            wait_for(lambda: league("since_games/main", 3), 300, "main's first league matches", cluster, "actor")
+            wait_for(lambda: league("generation/exploiter", 1), 300, "the exploiter's second generation", cluster,
+                     "league")
+            for svc in ("replay-exploiter", "learner-exploiter", "actor-exploiter"):
+                wait_for(lambda svc=svc: restarts(svc) >= 1, 180, f"{svc} restarted by the engine", cluster, svc)
+                assert "to be started afresh (exit status 75)" in cluster.logs(svc), cluster.logs(svc)[-3000:]
+            # the new generation plays (its matches since the reset), its learner started fresh
+            seen.pop("since_games/exploiter", None)  # (the count of the old generation)
+            wait_for(lambda: league("since_games/exploiter", 3), 300, "matches of the exploiter's new generation",
+                     cluster, "actor-exploiter")
+            assert "resumed from" not in cluster.logs("learner-exploiter"), cluster.logs("learner-exploiter")[-3000:]
+            for svc in ("replay", "learner", "actor", "league"):
+                assert restarts(svc) == 0, f"{svc} restarted\n{cluster.logs(svc)[-3000:]}"
+    finally:
+        cluster.cleanup()
