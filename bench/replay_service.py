@@ -18,8 +18,11 @@ receivers):
     bytes and copies them into a pre-touched ring of the replay's frame bytes, nothing else;
     ``service_fraction_of_store_only`` = median service rate / median store-only rate (target
     >= 0.8), with a learner-like sampler (batch 128, 4 requests in flight, ``SamplePrefetcher``
-    over the replay's queryable; ``--sample-rate`` caps it, ``--no-sampler`` leaves it out)
-    running through every service round;
+    over the replay's queryable; ``--sample-rate`` caps it, ``--sample-rate learner`` caps it at
+    the Ape-X learner's own update rate for that kind's observations on this machine, measured
+    first in memory with nothing else running (``learner_updates_per_s``: an upper bound of what
+    a learner sharing the machine would take), ``--no-sampler`` leaves it out) running through
+    every service round;
   * ``threads`` - per thread of the receiving process (the replay, the store-only receiver), over
     each round: CPU, wake-ups, preemptions and minor page faults per chunk (``/proc``; zenrl's
     threads are named, Zenoh's runtime names its own: ``rx-0``, ``tx-0``, ...);
@@ -67,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import Procs, ab_cpu_us, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _common import ROOT, Procs, ab_cpu_us, emit, log, machine_info, record_error, shut_down, stop_on_sigterm, wait_until  # noqa: E402  (bench/ is on sys.path when run as a script)
 from zenrl.common.config import ActorConfig  # noqa: E402
 
 CHUNK = ActorConfig().chunk_size  # what actors send by default
@@ -903,9 +906,16 @@ def orchestrate_images(args: argparse.Namespace) -> int:
     try:
         node = Node(ep, 10.0)
         log(f"router {ep}, logs in {tmp}, shared memory {'on' if args.shm else 'off'}, codec {args.codec}, "
-            f"sampler {'off' if sample_rate is None else (f'{sample_rate:g}/s' if sample_rate else 'unthrottled')}")
+            f"sampler {'off' if sample_rate is None else (sample_rate if isinstance(sample_rate, str) else (f'{sample_rate:g}/s' if sample_rate else 'unthrottled'))}")
         kinds: dict[str, Any] = {}
+        learner_rates: dict[str, Any] = {}
         for kind in args.kinds:
+            kind_rate = sample_rate
+            if sample_rate == "learner":  # before this kind's replays start: the learner alone
+                learner_rates[kind] = learner_rate(kind, 1.0 if args.quick else 3.0, 4.0 if args.quick else 10.0)
+                kind_rate = learner_rates[kind]["updates_per_s"]
+                log(f"[{kind}] the Ape-X learner alone: {kind_rate:g} updates/s of {LEARNER_BATCH} "
+                    f"({learner_rates[kind]['config']}): the sampler's rate")
             # synthetic chunks of no registered env (6 actions, bare frames): the env checks' cost
             # is --checks-only's
             replays = start_replays(procs, node, ep, args, kind, IMAGE_CAPACITY, "replay.check_semantics=false")
@@ -930,7 +940,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 for variant in order:
                     run, p, stats = replays[variant]
                     res = service_round(procs, node, stats, ep, run, r, duration, kind, shm=args.shm, replay_pid=p.pid,
-                                        sample_rate=sample_rate, tag=variant, codec=args.codec)
+                                        sample_rate=kind_rate, tag=variant, codec=args.codec)
                     log(f"[{kind}] round {r} replay {variant}: {res['items_per_s'] or 0:,.0f} items/s, "
                         f"{res['ingested_items']}/{res['sent_items']} items ingested, dropped {res['dropped_queue_full']}, "
                         f"{res['threads']['us_per_chunk']} us CPU per chunk, "
@@ -972,6 +982,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 "inprocess_ratio_vs_raw_zenoh": round(ref["items_per_s"] / raw_med, 3),
                 "store_only_us_per_chunk_cpu": median_of([x["threads"] for x in store if x["threads"]], "us_per_chunk"),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
+                **({"learner_updates_per_s": learner_rates[kind]} if kind in learner_rates else {}),
                 "final_replay_stats": {v: (st.snapshot()[-1][1] if st.snapshot() else None) for v, (_, _, st) in replays.items()},
                 "rounds": {"raw": raw, "store_only": store, **svc},
             })
@@ -983,7 +994,8 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             "shared_memory": bool(args.shm),
             "codec": args.codec,
             "sampler": None if sample_rate is None else {"batch": LEARNER_BATCH, "in_flight": LEARNER_IN_FLIGHT,
-                                                         "rate": sample_rate or "as served"},
+                                                         "rate": ("each kind's learner_updates_per_s" if sample_rate == "learner"
+                                                                  else sample_rate or "as served")},
             "notes": ("frame-mode chunks of random uint8 frames (lz4 cannot shrink them); rates at the receiver; "
                       "every party on the same transport settings (--shm); store-only = the same client "
                       "publishers to a subscriber process that copies each payload into a ring of the replay's "
@@ -1001,6 +1013,58 @@ def orchestrate_images(args: argparse.Namespace) -> int:
     finally:
         shut_down(procs, node, router)
     return emit(out)
+
+
+def _sample_rate(text: str) -> float | str:
+    if text == "learner":
+        return text
+    v = float(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"--sample-rate must be >= 0 or 'learner', got {text}")
+    return v
+
+
+#: the network each image kind is trained with: the shipped config of that observation
+KIND_CONFIGS = {"cam64": "configs/burgerwar_image_apex.yaml", "atari84": "configs/pong_apex.yaml"}
+
+
+def learner_rate(kind: str, warmup_s: float = 3.0, duration_s: float = 10.0) -> dict[str, Any]:
+    """Updates/s of the Ape-X learner's update (``DQNLearner``: batch_to_tensors + update, batch
+    LEARNER_BATCH, the kind's shipped network and torch threads) on synthetic batches of ``kind``
+    already in memory, alone in this process: the most batches a learner would sample."""
+    import gymnasium as gym
+    import torch
+
+    from zenrl.common.config import load_config
+    from zenrl.common.networks import obs_spec, resolve_device
+    from zenrl.learner.dqn import DQNLearner
+
+    cfg = load_config(ROOT / KIND_CONFIGS[kind], [f"learner.batch_size={LEARNER_BATCH}"])
+    shape = (64, 64, 3) if kind == "cam64" else (84, 84, IMAGE_STACK)
+    spec = obs_spec(gym.spaces.Box(0, 255, shape, np.uint8))
+    torch.set_num_threads(cfg.learner.torch_threads)
+    dqn = DQNLearner(spec, 6, cfg.network, cfg.learner, resolve_device("cpu"))
+    rng = np.random.default_rng(0)
+    b = LEARNER_BATCH
+    batches = [({"obs": rng.integers(0, 256, (b, *shape), dtype=np.uint8),
+                 "next_obs": rng.integers(0, 256, (b, *shape), dtype=np.uint8),
+                 "action": rng.integers(0, 6, b).astype(np.int64), "reward": rng.random(b).astype(np.float32),
+                 "terminated": rng.random(b) < 0.01, "n": np.full(b, IMAGE_N_STEP, np.uint8),
+                 "meta/policy_version": np.zeros(b, np.int64)},
+                (rng.random(b) * 0.9 + 0.1).astype(np.float32)) for _ in range(4)]
+    i = n = 0
+    t_end = time.perf_counter() + warmup_s
+    while time.perf_counter() < t_end:
+        dqn.update(dqn.batch_to_tensors(*batches[i % 4]))
+        i += 1
+    t0 = time.perf_counter()
+    while time.perf_counter() < t0 + duration_s:
+        dqn.update(dqn.batch_to_tensors(*batches[i % 4]))
+        i += 1
+        n += 1
+    el = time.perf_counter() - t0
+    return {"updates_per_s": round(n / el, 2), "updates": n, "config": KIND_CONFIGS[kind],
+            "torch_threads": cfg.learner.torch_threads}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1021,8 +1085,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kind", choices=["cartpole", *IMAGE_KINDS], default="cartpole", help=argparse.SUPPRESS)
     ap.add_argument("--shm", action="store_true",
                     help="every party with Zenoh's shared memory on (transport.shared_memory; default off, as zenrl runs)")
-    ap.add_argument("--sample-rate", type=float, default=0.0,
-                    help="--images: batches/s the learner-like sampler takes during service rounds (0: as fast as served)")
+    ap.add_argument("--sample-rate", type=_sample_rate, default=0.0,
+                    help="--images: batches/s the learner-like sampler takes during service rounds (0: as fast as "
+                         "served; 'learner': the Ape-X learner's own update rate for each kind on this machine)")
     ap.add_argument("--no-sampler", action="store_true", help="--images: no sampler during the service rounds")
     ap.add_argument("--baseline", default=None, metavar="DIR",
                     help="also measure the replay of the zenrl checkout DIR (run with DIR/.venv) in the same rounds: "
