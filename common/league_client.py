@@ -236,6 +236,8 @@ class LeagueChooser:
             self.counts["unticketed"] += 1
             return
         ticket = tickets.popleft()
+        if not tickets:  # (a live player's names change with its versions: no key is kept empty)
+            del self._open[r.opponent]
         msg = P.MatchResult(actor_id=self.actor_id, player=self.player, generation=self.generation or 0,
                             player_version=max(-1, int(self.version_fn())), opponent=opponent,
                             opponent_version=version, outcome=_OUTCOMES[r.outcome],
