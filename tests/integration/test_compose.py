@@ -257,7 +257,7 @@ def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
         assert cfg.run_id == "league-cluster", name
         if name in ("league", "league-status"):
             continue
-        assert getattr(args, "agent", None), f"{name}: a league cluster's {args.command if hasattr(args, 'command') else name} needs --agent"
+        assert getattr(args, "agent", None), f"{name}: a league cluster's {svc['command'][0]} needs --agent"
         acfg = _agent_config(cfg, args.agent)
         assert acfg.run_id == f"league-cluster.{args.agent}" and acfg.league.self_reset, name
         by_agent.setdefault(args.agent, set()).add(svc["command"][0])
