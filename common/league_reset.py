@@ -25,7 +25,7 @@ import logging
 import shutil
 import threading
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping
 
 from zenrl.common import protocol as P
 from zenrl.common.atomic_files import write_bytes_atomically
@@ -40,6 +40,13 @@ EXIT_GENERATION = 75
 
 class GenerationReset(ZenrlError):
     """The league started a new generation of this process's agent: exit and be started again."""
+
+
+def generations(values: Mapping[str, Any]) -> dict[str, int]:
+    """The agents' generations (``generation/<agent>``) among a league stats message's values:
+    what ``zenrl run``'s launcher and :class:`GenerationWatch` both follow."""
+    return {k.split("/", 1)[1]: v for k, v in values.items()
+            if k.startswith("generation/") and type(v) is int and v >= 0}
 
 
 def marker_path(cfg: RunConfig, run_id: str, role: str) -> Path:
@@ -72,10 +79,10 @@ class GenerationWatch:
 
     def _on_stats(self, key: str, payload: bytes) -> None:
         try:
-            g = P.Stats.decode(payload, 1 << 20).values.get(f"generation/{self.agent}")
+            g = generations(P.Stats.decode(payload, 1 << 20).values).get(self.agent)
         except ProtocolError:
             return
-        if type(g) is not int or g < 0:
+        if g is None:
             return
         with self._lock:
             if self.own is None:  # the first word: this is the generation of whatever we hold

@@ -411,13 +411,13 @@ class Launcher:
     # -- league runs -------------------------------------------------------------------------
     def _on_league_stats(self, key: str, payload: bytes) -> None:
         from zenrl.common import protocol as P
+        from zenrl.common.league_reset import generations
 
         try:
             m = P.Stats.decode(payload)
         except P.ProtocolError:
             return
-        seen = {k.split("/", 1)[1]: int(v) for k, v in m.values.items()
-                if k.startswith("generation/") and isinstance(v, int) and not isinstance(v, bool)}
+        seen = generations(m.values)
         with self.progress.lock:
             self._league_seen.update({a: g for a, g in seen.items() if a in self.agents})
             self.progress.league = {k: v for k, v in m.values.items() if not k.startswith(("errors/", "rejected_"))}
