@@ -112,7 +112,9 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
     try:
         cfg = resolve(args)
         if getattr(args, "agent", None):
-            cfg = _agent_config(cfg, args.agent)
+            from zenrl.launcher.league_run import agent_config
+
+            cfg = agent_config(cfg, args.agent)
         check_dev_credentials(cfg.transport.client_config, args.allow_dev_credentials)
         run_id = cfg.run_id or "default"
         stop = threading.Event()
@@ -131,23 +133,6 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
         sys.stderr.write(f"zenrl: error: {role} cannot go on: {e}\n")
         return 1
     return 0
-
-
-def _agent_config(cfg: RunConfig, agent: str) -> RunConfig:
-    """``--agent``: the config of one learning agent's processes of the league in ``cfg`` (run
-    id ``<run>.<agent>``, its overrides), as ``zenrl run`` resolves it for its own children."""
-    from zenrl.launcher.league_run import agent_configs, check_league
-
-    if not cfg.league.enabled:
-        raise ConfigError(f"--agent {agent}: the config has no league (league.enabled is false)")
-    if agent not in cfg.league.agents:
-        raise ConfigError(f"--agent {agent!r} is not one of league.agents {sorted(cfg.league.agents)}")
-    check_league(cfg)
-    lc = cfg.league
-    if lc.self_reset and lc.exploiter_init == "main" and lc.agents[agent].role == "exploiter":
-        raise ConfigError(f"--agent {agent}: league.exploiter_init main needs zenrl run (it hands the reset exploiter "
-                          "main's checkpoint); a cluster's exploiters start fresh: set league.exploiter_init: fresh")
-    return agent_configs(cfg, cfg.run_id or "default")[agent]
 
 
 def _watch_parent(stop: threading.Event) -> None:

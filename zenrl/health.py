@@ -3,10 +3,12 @@ probes (Kubernetes ``exec`` probes, Docker health checks)::
 
     python -m zenrl.health --role learner --id learner [--stats-within-s 30] [--unreachable-ok]
     python -m zenrl.health --role actor --id-prefix 'actor-{hostname}-'
+    python -m zenrl.health --role replay --id replay --config league.yaml --agent exploiter
 
 The router, run id and client config come from the same environment as the roles
 (``ZENRL_ROUTER``, ``ZENRL__RUN_ID``, ``ZENRL__TRANSPORT__CLIENT_CONFIG``; ``--config`` for a
-file). Healthy (exit 0) when the router holds the process's liveliness token
+file). ``--agent <id>`` means what it means on the roles: the process is that league agent's,
+under the run id ``<run>.<id>`` (the config's ``league.agents``). Healthy (exit 0) when the router holds the process's liveliness token
 (``zenrl/<run>/alive/<role>/<id>``) and, with ``--stats-within-s``, the process published its
 stats within that time (its main loop is not stuck) and those stats name no stalled thread (the
 role loop's ``stalled``: a thread such as the replay's ingest that has finished no unit of work
@@ -40,9 +42,16 @@ log = logging.getLogger(__name__)
 
 
 def check(role: str, ident: str | None, prefix: str | None, stats_within_s: float | None,
-          unreachable_ok: bool, config: str | None = None, connect_timeout_s: float = 3.0) -> dict:
-    """The health of the matching process(es) of ``role`` as a dict (``ok``: healthy)."""
+          unreachable_ok: bool, config: str | None = None, connect_timeout_s: float = 3.0,
+          agent: str | None = None) -> dict:
+    """The health of the matching process(es) of ``role`` as a dict (``ok``: healthy);
+    ``agent``: a league agent's process, as the roles' ``--agent`` resolves it."""
     cfg = load_config(config)
+    if agent:
+        # imported here: a probe without --agent need not load the league's code
+        from zenrl.launcher.league_run import agent_config
+
+        cfg = agent_config(cfg, agent)
     run_id = cfg.run_id or "default"
     k = P.Keys(run_id)
     host = socket.gethostname()
@@ -115,6 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stats-within-s", type=float, help="also require a stats message within this many seconds")
     p.add_argument("--unreachable-ok", action="store_true", help="pass when the router cannot be reached (liveness)")
     p.add_argument("--config", "-c", help="YAML config file (else the environment alone)")
+    p.add_argument("--agent", metavar="ID", help="a league agent's process (a key of the config's league.agents), as "
+                   "the role's --agent: look under its run id <run>.<ID>")
     p.add_argument("--connect-timeout-s", type=float, default=3.0, help="how long to wait for the router")
     return p
 
@@ -124,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     try:
         out = check(args.role, args.ident, args.id_prefix, args.stats_within_s, args.unreachable_ok, args.config,
-                    args.connect_timeout_s)
+                    args.connect_timeout_s, args.agent)
     except ZenrlError as e:
         sys.stdout.write(json.dumps({"ok": False, "role": args.role, "reason": str(e)}) + "\n")
         return 1

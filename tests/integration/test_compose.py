@@ -240,8 +240,8 @@ def test_compose_files_are_complete_and_consistent():
 def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
     """The league overlay: the league service, and every agent of the config's league has its
     replay, learner and actors (--agent), whose resolved configs are that agent's."""
-    from zenrl.cli import _agent_config
     from zenrl.common.config import load_config
+    from zenrl.launcher.league_run import agent_config
 
     assert {"league", "league-status", "replay-exploiter", "learner-exploiter", "actor-exploiter"} <= set(zs)
     named = {"runs": Path("/nonexistent")}
@@ -258,7 +258,7 @@ def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
         if name in ("league", "league-status"):
             continue
         assert getattr(args, "agent", None), f"{name}: a league cluster's {svc['command'][0]} needs --agent"
-        acfg = _agent_config(cfg, args.agent)
+        acfg = agent_config(cfg, args.agent)
         assert acfg.run_id == f"league-cluster.{args.agent}" and acfg.league.self_reset, name
         by_agent.setdefault(args.agent, set()).add(svc["command"][0])
         if svc["command"][0] == "learner":

@@ -83,17 +83,18 @@ def test_an_actor_keeps_no_marker_and_only_agent_processes_watch(tmp_path):
 
 
 def test_agent_flag_gives_the_agents_config_or_a_one_line_error(tmp_path, capsys):
-    from zenrl.cli import _agent_config, main
+    from zenrl.cli import main
     from zenrl.common.errors import ConfigError
+    from zenrl.launcher.league_run import agent_config
 
     cfg = load_config(ROOT / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}", "run_id=lg"])
-    ex = _agent_config(cfg, "exploiter")
+    ex = agent_config(cfg, "exploiter")
     assert (ex.run_id, ex.league.run_id, ex.league.player, ex.league.self_reset) == ("lg.exploiter", "lg", "exploiter", True)
     assert ex.replay.capacity == 100000 and ex.actor.num_actors == 1 and not ex.evaluator.enabled
     with pytest.raises(ConfigError, match="not one of league.agents"):
-        _agent_config(cfg, "nobody")
+        agent_config(cfg, "nobody")
     with pytest.raises(ConfigError, match="exploiter_init main needs zenrl run"):
-        _agent_config(cfg.model_copy(update={"league": cfg.league.model_copy(update={"exploiter_init": "main"})}),
-                      "exploiter")
+        agent_config(cfg.model_copy(update={"league": cfg.league.model_copy(update={"exploiter_init": "main"})}),
+                     "exploiter")
     assert main(["replay", "--agent", "main", "--run-id", "x"]) == EXIT_CONFIG  # CartPole: no league
     assert "league.enabled is false" in capsys.readouterr().err

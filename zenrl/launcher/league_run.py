@@ -91,6 +91,23 @@ def check_league(cfg: RunConfig) -> None:
     agent_configs(cfg, cfg.run_id or "x" * 20)
 
 
+def agent_config(cfg: RunConfig, agent: str) -> RunConfig:
+    """``--agent`` (each role and the health probe): the config of one learning agent's
+    processes of the league in ``cfg`` (run id ``<run>.<agent>``, its overrides), as ``zenrl
+    run`` resolves it for its own children. A :class:`ConfigError` for a config with no league,
+    an unknown agent, or an exploiter that only ``zenrl run`` can reset."""
+    if not cfg.league.enabled:
+        raise ConfigError(f"--agent {agent}: the config has no league (league.enabled is false)")
+    if agent not in cfg.league.agents:
+        raise ConfigError(f"--agent {agent!r} is not one of league.agents {sorted(cfg.league.agents)}")
+    check_league(cfg)
+    lc = cfg.league
+    if lc.self_reset and lc.exploiter_init == "main" and lc.agents[agent].role == "exploiter":
+        raise ConfigError(f"--agent {agent}: league.exploiter_init main needs zenrl run (it hands the reset exploiter "
+                          "main's checkpoint); a cluster's exploiters start fresh: set league.exploiter_init: fresh")
+    return agent_configs(cfg, cfg.run_id or "default")[agent]
+
+
 def read_applied(run_dir: Path) -> dict[str, int]:
     try:
         d = json.loads((run_dir / APPLIED_FILE).read_text())
