@@ -31,6 +31,7 @@ from typing import Any, ClassVar, Iterable, Mapping
 
 import lz4.block
 import msgpack
+import msgspec
 import numpy as np
 
 from zenrl.common.errors import ConfigError, ProtocolError
@@ -270,6 +271,9 @@ def encode_array(a: np.ndarray, codec: str | None = None) -> dict[str, Any]:
 
 _ARRAY_KEYS = {"dtype", "shape", "data"}
 _PACKED_KEYS = {"dtype", "shape", "data", "codec", "size"}
+#: what an array map's ``data`` may be: bin as msgpack decodes it, or a view on the payload
+#: (:func:`_unpack_views`)
+_BIN = (bytes, bytearray, memoryview)
 _SHAPE_RULE = f"must be a list of <= {MAX_NDIM} ints in 0..{MAX_DIM} of at most {MAX_ELEMENTS} elements (a 0 counted as 1)"
 
 
@@ -335,7 +339,7 @@ def decode_array(name: str, m: Any) -> np.ndarray:
         # a non-empty array's bytes bound its shape (the message cap is at most 1 GiB); an
         # empty one's dimensions must be bounded on their own (a zero hides the rest)
         declared_elements(name, shape)
-    if type(data) is not bytes and not isinstance(data, (bytes, bytearray)):
+    if type(data) is not bytes and not isinstance(data, _BIN):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
     if expected != len(data):
         raise ProtocolError(f"{name}.data", f"holds {len(data)} bytes; dtype {dtype} and shape {shape} need {expected}", "shape")
@@ -354,7 +358,7 @@ def _check_packed_header(name: str, m: dict[str, Any]) -> int:
     if type(size) is not int or size != expected:
         raise ProtocolError(f"{name}.size", f"declares {size!r:.100} decompressed bytes; uint8 shape {shape} needs {expected}", "shape")
     data = m["data"]
-    if isinstance(data, (bytes, bytearray)) and size > LZ4_MAX_RATIO * len(data) + 64:
+    if isinstance(data, _BIN) and size > LZ4_MAX_RATIO * len(data) + 64:
         raise ProtocolError(f"{name}.size", f"declares {size} bytes from {len(data)} compressed bytes, more than "
                             f"{codec} can expand; refused unread", "bomb")
     return size
@@ -364,7 +368,7 @@ def _decode_packed(name: str, m: dict[str, Any]) -> np.ndarray:
     """A compressed array: every declared number is checked before a byte is decompressed."""
     codec, size, dtype, shape, data = m["codec"], m["size"], m["dtype"], m["shape"], m["data"]
     _check_packed_header(name, m)
-    if not isinstance(data, (bytes, bytearray)):
+    if not isinstance(data, _BIN):
         raise ProtocolError(f"{name}.data", "must be bin", "array")
     try:
         raw = lz4.block.decompress(data, uncompressed_size=size)
@@ -462,7 +466,7 @@ class Message:
                limits: DecodeLimits | None = None) -> "Message":
         """Validate and decode; ``limits``: the receiver's :class:`DecodeLimits` (default: the
         protocol's decoded-bytes cap, no spec)."""
-        env = _unpack(payload, max_bytes)
+        env = _unpack_views(cls, payload, max_bytes)
         if env["t"] != cls.TYPE:
             raise ProtocolError("t", f"expected message type {cls.TYPE!r:.100}, got {env['t']!r:.100}", "type")
         return cls._from_envelope(env, limits or _DEFAULT_LIMITS)
@@ -527,11 +531,109 @@ def _unpack(payload: Any, max_bytes: int) -> dict[str, Any]:
         raise ProtocolError("payload", f"is not valid msgpack ({type(e).__name__})", "malformed") from None
     if not isinstance(env, dict):
         raise ProtocolError("payload", f"must be a msgpack map, got {type(env).__name__}", "malformed")
+    _check_envelope(env)
+    return env
+
+
+def _check_envelope(env: dict[str, Any]) -> None:
     if env.get("v") != PROTOCOL_VERSION:
         raise ProtocolError("v", f"protocol version {env.get('v')!r} is not supported (this is version {PROTOCOL_VERSION})", "version")
     if not isinstance(env.get("t"), str):
         raise ProtocolError("t", "message type is missing", "type")
+
+
+class _WireArray(msgspec.Struct, forbid_unknown_fields=True):
+    """An array map as :func:`_unpack_views` reads it: ``data`` a view on the payload."""
+
+    dtype: Any
+    shape: Any
+    data: memoryview
+    codec: Any = msgspec.UNSET
+    size: Any = msgspec.UNSET
+
+
+_VIEW_DECODERS: dict[type, Any] = {}
+
+
+def _view_decoder(cls: type["Message"]) -> Any:
+    """A msgspec decoder of ``cls``'s envelope that reads its array maps' data as views on the
+    payload; every other value as msgpack decodes it (built once per class)."""
+    dec = _VIEW_DECODERS.get(cls)
+    if dec is None:
+        many, one = dict[str, _WireArray] | None, _WireArray | None
+        kinds = {n: many if k.startswith("arrays") else one if k.startswith("array") else Any for n, k in cls.SCHEMA.items()}
+        spec = [(n, kinds.get(n, Any), msgspec.UNSET) for n in ("v", "t", *(f.name for f in fields(cls)))]
+        env = msgspec.defstruct(f"_{cls.__name__}Envelope", spec, forbid_unknown_fields=True)
+        dec = _VIEW_DECODERS[cls] = msgspec.msgpack.Decoder(env)
+    return dec
+
+
+def _wire_map(w: _WireArray) -> dict[str, Any]:
+    m = {"dtype": w.dtype, "shape": w.shape, "data": w.data}
+    if w.codec is not msgspec.UNSET:
+        m["codec"] = w.codec
+    if w.size is not msgspec.UNSET:
+        m["size"] = w.size
+    return m
+
+
+def _unpack_views(cls: type["Message"], payload: Any, max_bytes: int) -> dict[str, Any]:
+    """:func:`_unpack` of a ``cls`` message whose array data stay in the payload: the
+    arrays decoded from it are read-only views on ``payload``, not copies (a 64x64 camera
+    chunk's frames are most of its bytes; msgpack would copy each into a bytes object). A
+    payload this reader refuses (another type's fields, a value of an unexpected form, not
+    msgpack) is read by :func:`_unpack` and the checks after it, which name what is wrong."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) > max_bytes:
+        return _unpack(payload, max_bytes)
+    try:
+        s = _view_decoder(cls).decode(payload)
+    except Exception:  # noqa: BLE001 - msgspec raises several types on garbage (bad UTF-8 among them)
+        return _unpack(payload, max_bytes)
+    env: dict[str, Any] = {}
+    plain = []
+    for n in s.__struct_fields__:
+        v = getattr(s, n)
+        if v is msgspec.UNSET:
+            continue
+        if type(v) is _WireArray:
+            plain.append(v.dtype), plain.append(v.shape), plain.append(v.codec), plain.append(v.size)
+            v = _wire_map(v)
+        elif type(v) is dict and v and type(next(iter(v.values()))) is _WireArray:
+            for w in v.values():
+                plain.append(w.dtype), plain.append(w.shape), plain.append(w.codec), plain.append(w.size)
+            v = {k: _wire_map(w) for k, w in v.items()}
+        else:
+            plain.append(v)
+        env[n] = v
+    if not _as_msgpack_reads(plain):
+        return _unpack(payload, max_bytes)
+    _check_envelope(env)
     return env
+
+
+_PLAIN = (type(None), bool, int, float, str, bytes)
+
+
+def _as_msgpack_reads(values: list[Any]) -> bool:
+    """Whether ``values`` (as msgspec read them, UNSET for absent) are what msgpack's reader
+    would have given: plain values, lists, and maps with string keys only (msgpack refuses
+    other keys; msgspec reads extension types and timestamps into other types)."""
+    stack = values
+    while stack:
+        v = stack.pop()
+        t = type(v)
+        if t in _PLAIN or v is msgspec.UNSET:
+            continue
+        if t is list:
+            stack.extend(v)
+        elif t is dict:
+            for k, x in v.items():
+                if type(k) is not str:
+                    return False
+                stack.append(x)
+        else:
+            return False
+    return True
 
 
 def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, limits: DecodeLimits | None = None) -> Message:
@@ -1080,7 +1182,7 @@ class Unroll(Message):
         """As :meth:`Message.decode`; with ``spec`` (observation field -> (dtype, item shape),
         the env's), the declared observation arrays are checked against it first
         (:meth:`check_declared`), before anything is decompressed."""
-        env = _unpack(payload, max_bytes)
+        env = _unpack_views(cls, payload, max_bytes)
         if env["t"] != cls.TYPE:
             raise ProtocolError("t", f"expected message type {cls.TYPE!r:.100}, got {env['t']!r:.100}", "type")
         if spec is not None:
