@@ -4,6 +4,7 @@ probes (Kubernetes ``exec`` probes, Docker health checks)::
     python -m zenrl.health --role learner --id learner [--stats-within-s 30] [--unreachable-ok]
     python -m zenrl.health --role actor --id-prefix 'actor-{hostname}-'
     python -m zenrl.health --role replay --id replay --config league.yaml --agent exploiter
+    python -m zenrl.health --role league --id league
 
 The router, run id and client config come from the same environment as the roles
 (``ZENRL_ROUTER``, ``ZENRL__RUN_ID``, ``ZENRL__TRANSPORT__CLIENT_CONFIG``; ``--config`` for a
@@ -118,7 +119,8 @@ def judge(role: str, token: str, want: str, ids: list[str], stats: dict[str, dic
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m zenrl.health", description=__doc__.split("\n\n")[0])
-    p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator"), help="the process's role")
+    p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator", "league"),
+                   help="the process's role")
     p.add_argument("--id", dest="ident", help="its exact id ({hostname}, and {ordinal}: the hostname's last -<n>, are replaced)")
     p.add_argument("--id-prefix", help="or a prefix of its id, e.g. 'actor-{hostname}-'")
     p.add_argument("--stats-within-s", type=float, help="also require a stats message within this many seconds")

@@ -99,3 +99,9 @@ def test_unknown_agent_is_a_one_line_error(monkeypatch, capsys, tmp_path):
     rc, out = _probe(monkeypatch, capsys, tmp_path, ["zenrl/lg.nobody/alive/replay/replay"],
                      "--role", "replay", "--agent", "nobody", "--unreachable-ok")
     assert rc == 1 and not out["ok"] and "not one of league.agents" in out["reason"] and "\n" not in out["reason"], out
+
+
+def test_the_league_service_is_probed_on_the_leagues_own_run_id(monkeypatch, capsys, tmp_path):
+    rc, out = _probe(monkeypatch, capsys, tmp_path, ["zenrl/lg/alive/league/league"],
+                     "--role", "league", "--id", "league")
+    assert (rc, out["run_id"], out["ids"]) == (0, "lg", ["league"]), out

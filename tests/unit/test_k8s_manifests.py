@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -78,7 +79,7 @@ def container(docs: list[dict], workload: str, name: str) -> dict:
     return next(c for c in spec["containers"] if c["name"] == name)
 
 
-OVERLAYS = ("plain", "secured", "gpu", "sharded-replay")
+OVERLAYS = ("plain", "secured", "gpu", "sharded-replay", "league")
 ROLES = {"zenrl-replay": "replay", "zenrl-learner": "learner", "zenrl-actor": "actor", "zenrl-evaluator": "evaluator"}
 
 
@@ -243,6 +244,102 @@ def test_sharded_replay_overlay_runs_one_replay_pod_per_shard(tree):
     assert workloads(plain)["zenrl-replay"]["spec"]["replicas"] == 1
     assert "ZENRL__REPLAY__SHARDS" not in by_kind(plain, "ConfigMap")[_generated(plain, "zenrl-env")]["data"]
     assert not any(e["name"] == "ZENRL_REPLAY_SHARD" for e in container(plain, "zenrl-replay", "replay").get("env", []))
+
+
+def _container_env(docs: list[dict], c: dict) -> dict[str, str]:
+    """The environment the kubelet gives container ``c``: its ConfigMaps (envFrom), then its
+    ``env`` values with ``$(VAR)`` expanded from what is defined before them."""
+    maps = by_kind(docs, "ConfigMap")
+    env: dict[str, str] = {}
+    for src in c.get("envFrom", []):
+        env.update(maps[src["configMapRef"]["name"]]["data"])
+    for e in c.get("env", []):
+        if "value" in e:
+            env[e["name"]] = re.sub(r"\$\(([A-Za-z_][A-Za-z0-9_]*)\)", lambda m: env.get(m[1], m[0]), e["value"])
+    return env
+
+
+def _mounted_file(docs: list[dict], spec: dict, c: dict, path: str, into: Path) -> str:
+    """A copy under ``into`` of the file at ``path`` in container ``c``, from the ConfigMap
+    mounted there (``into`` keeps the file's own name)."""
+    mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
+    vol = next(v for v in spec["volumes"] if v["name"] == mounts[str(Path(path).parent)])
+    into.mkdir(parents=True, exist_ok=True)
+    out = into / Path(path).name
+    out.write_text(by_kind(docs, "ConfigMap")[vol["configMap"]["name"]]["data"][Path(path).name])
+    return str(out)
+
+
+def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
+    """The league overlay: the league service on the league's run id, and for each agent of the
+    config's league.agents its replay, learner and actors (the evaluator: main's), each process
+    and each of its probes with --agent <id>, so that both resolve the same run id <run>.<id>,
+    one per agent; the exporter watches main's. A probe or a process without --agent (or with
+    another agent's) looks under another run id and fails here."""
+    from zenrl.cli import build_parser as zenrl_parser
+    from zenrl.common.config import load_config
+    from zenrl.health import build_parser as probe_parser
+    from zenrl.launcher.league_run import agent_config
+
+    docs = render(tree, "league")
+    cfg_text = by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-config")]["data"]["zenrl.yaml"]
+    assert cfg_text == (ROOT / "configs/cluster_league.yaml").read_text(), \
+        "overlays/league/zenrl.yaml is not a copy of configs/cluster_league.yaml"
+
+    def resolve(config: str, env: dict[str, str], agent: str | None):
+        cfg = load_config(config, environ=env)
+        return agent_config(cfg, agent) if agent else cfg
+
+    league_run = None
+    run_ids: dict[str, set[str]] = {}  # agent -> the run ids its processes (and their probes) resolve
+    roles: dict[str, set[str]] = {}
+    exporter_run = None
+    for name, w in workloads(docs).items():
+        spec = w["spec"]["template"]["spec"]
+        # an exploiter's reset is an exit (75) that the kubelet must answer with a restart
+        assert spec.get("restartPolicy", "Always") == "Always", name
+        for c in spec["containers"]:
+            if c["image"].split(":")[0] != "zenrl" or c["args"][0] == "router":
+                continue
+            args = zenrl_parser().parse_args(c["args"])
+            env = _container_env(docs, c)
+            config = _mounted_file(docs, spec, c, args.config, tmp_path / name)
+            run_id = resolve(config, env, getattr(args, "agent", None)).run_id
+            role = c["args"][0]
+            if role == "exporter":
+                exporter_run = run_id
+                continue
+            if role == "league":
+                league_run = run_id
+                agent = None
+            else:
+                agent = getattr(args, "agent", None)
+                assert agent, f"{name}: a league agent's {role} needs --agent <id> (or runs on the league's run id)"
+                run_ids.setdefault(agent, set()).add(run_id)
+                roles.setdefault(agent, set()).add(role)
+            for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+                cmd = c[probe]["exec"]["command"]
+                assert cmd[:3] == ["python", "-m", "zenrl.health"], (name, probe, cmd)
+                pargs = probe_parser().parse_args(cmd[3:])
+                assert pargs.role == role and pargs.unreachable_ok == (probe == "livenessProbe"), (name, probe, cmd)
+                assert pargs.agent == agent, f"{name} {probe}: --agent {pargs.agent}, the process's is {agent}"
+                pconfig = _mounted_file(docs, spec, c, pargs.config, tmp_path / name) if pargs.config else None
+                assert resolve(pconfig, env, pargs.agent).run_id == run_id, (name, probe, cmd)
+            if role == "learner":
+                assert "--auto-resume" in c["args"], name
+            if role in ("replay", "learner", "league"):  # /runs on a volume of its own
+                claims = [t["metadata"]["name"] for t in w["spec"]["volumeClaimTemplates"]]
+                mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
+                assert mounts[env["ZENRL__RUNS_DIR"]] in claims, name
+    cfg = load_config(str(ROOT / "configs/cluster_league.yaml"), environ={})
+    assert set(run_ids) == set(cfg.league.agents)
+    assert league_run == by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-env")]["data"]["ZENRL__RUN_ID"]
+    for agent, ids in run_ids.items():
+        assert ids == {f"{league_run}.{agent}"}, (agent, ids)
+        want = {"replay", "learner", "actor"} | ({"evaluator"} if cfg.league.agents[agent].role == "main" else set())
+        assert roles[agent] == want, (agent, roles[agent])
+    assert len({i for ids in run_ids.values() for i in ids}) == len(run_ids), f"agents share a run id: {run_ids}"
+    assert exporter_run == f"{league_run}.main"
 
 
 def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):
