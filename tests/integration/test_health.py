@@ -41,6 +41,21 @@ def test_health_follows_the_process(router, run_id, procs):
                "the replay unhealthy once it stopped")
 
 
+def test_health_agent_looks_under_the_agents_run_id(router, run_id, procs, tmp_path):
+    """A league agent's replay (--agent exploiter) is healthy to the probe with the same
+    --agent, and invisible to one without it or with the other agent's."""
+    config = str(ROOT / "configs/cluster_league.yaml")
+    procs.zenrl("replay", ["replay", "--config", config, "--agent", "exploiter", "--router", router, "--run-id", run_id,
+                           "--set", f"runs_dir={tmp_path}", "--set", "replay.stats_interval_s=0.5"])
+    probe = ["--role", "replay", "--id", "replay", "--config", config]
+    wait_until(lambda: _health(router, run_id, *probe, "--agent", "exploiter", "--stats-within-s", "5")[0] == 0, 60,
+               "the exploiter's replay healthy")
+    rc, out = _health(router, run_id, *probe, "--agent", "exploiter")
+    assert rc == 0 and out["run_id"] == f"{run_id}.exploiter", out
+    assert _health(router, run_id, *probe)[0] == 1
+    assert _health(router, run_id, *probe, "--agent", "main")[0] == 1
+
+
 def test_health_router_unreachable(run_id):
     ep = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
     rc, out = _health(ep, run_id, "--role", "learner", "--connect-timeout-s", "0.5")
