@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, ClassVar, Iterable, Mapping
+from typing import Any, ClassVar, Iterable, Mapping, Union
 
 import lz4.block
 import msgpack
@@ -543,13 +543,15 @@ def _check_envelope(env: dict[str, Any]) -> None:
 
 
 class _WireArray(msgspec.Struct, forbid_unknown_fields=True):
-    """An array map as :func:`_unpack_views` reads it: ``data`` a view on the payload."""
+    """An array map as :func:`_unpack_views` reads it: ``data`` a view on the payload. The
+    types are those msgpack's reader gives a well-formed map; a map of any other form is left to
+    that reader."""
 
-    dtype: Any
-    shape: Any
+    dtype: str
+    shape: list[int]
     data: memoryview
-    codec: Any = msgspec.UNSET
-    size: Any = msgspec.UNSET
+    codec: Union[str, msgspec.UnsetType] = msgspec.UNSET
+    size: Union[int, msgspec.UnsetType] = msgspec.UNSET
 
 
 _VIEW_DECODERS: dict[type, Any] = {}
@@ -568,8 +570,19 @@ def _view_decoder(cls: type["Message"]) -> Any:
     return dec
 
 
+#: uint8 data at least this long stays a view on the payload; other data is copied out as
+#: msgpack would (a view at an odd offset would give numbers unaligned arrays, slower to compute
+#: on; a short copy costs less than the view's bookkeeping)
+VIEW_MIN_BYTES = 64 * 1024
+
+
 def _wire_map(w: _WireArray) -> dict[str, Any]:
-    m = {"dtype": w.dtype, "shape": w.shape, "data": w.data}
+    data = w.data
+    if w.dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
+        data = bytes(data)
+    if w.codec is msgspec.UNSET and w.size is msgspec.UNSET:
+        return {"dtype": w.dtype, "shape": w.shape, "data": data}
+    m = {"dtype": w.dtype, "shape": w.shape, "data": data}
     if w.codec is not msgspec.UNSET:
         m["codec"] = w.codec
     if w.size is not msgspec.UNSET:
@@ -578,34 +591,33 @@ def _wire_map(w: _WireArray) -> dict[str, Any]:
 
 
 def _unpack_views(cls: type["Message"], payload: Any, max_bytes: int) -> dict[str, Any]:
-    """:func:`_unpack` of a ``cls`` message whose array data stay in the payload: the
-    arrays decoded from it are read-only views on ``payload``, not copies (a 64x64 camera
-    chunk's frames are most of its bytes; msgpack would copy each into a bytes object). A
+    """:func:`_unpack` of a ``cls`` message whose large uint8 arrays (images, frames; at least
+    :data:`VIEW_MIN_BYTES`) stay in the payload: the arrays decoded from them are read-only
+    views on ``payload``, not copies (a 64x64 camera chunk's frames are most of its bytes;
+    msgpack would copy each into a bytes object). A
     payload this reader refuses (another type's fields, a value of an unexpected form, not
     msgpack) is read by :func:`_unpack` and the checks after it, which name what is wrong."""
-    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) > max_bytes:
-        return _unpack(payload, max_bytes)
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or not VIEW_MIN_BYTES <= len(payload) <= max_bytes:
+        return _unpack(payload, max_bytes)  # no array in it long enough for a view
     try:
         s = _view_decoder(cls).decode(payload)
     except Exception:  # noqa: BLE001 - msgspec raises several types on garbage (bad UTF-8 among them)
         return _unpack(payload, max_bytes)
     env: dict[str, Any] = {}
-    plain = []
+    rest = []
     for n in s.__struct_fields__:
         v = getattr(s, n)
-        if v is msgspec.UNSET:
-            continue
-        if type(v) is _WireArray:
-            plain.append(v.dtype), plain.append(v.shape), plain.append(v.codec), plain.append(v.size)
+        t = type(v)
+        if t is _WireArray:
             v = _wire_map(v)
-        elif type(v) is dict and v and type(next(iter(v.values()))) is _WireArray:
-            for w in v.values():
-                plain.append(w.dtype), plain.append(w.shape), plain.append(w.codec), plain.append(w.size)
+        elif t is dict and v and type(next(iter(v.values()))) is _WireArray:
             v = {k: _wire_map(w) for k, w in v.items()}
-        else:
-            plain.append(v)
+        elif t not in _PLAIN:
+            if v is msgspec.UNSET:
+                continue
+            rest.append(v)
         env[n] = v
-    if not _as_msgpack_reads(plain):
+    if rest and not _as_msgpack_reads(rest):
         return _unpack(payload, max_bytes)
     _check_envelope(env)
     return env
@@ -615,14 +627,14 @@ _PLAIN = (type(None), bool, int, float, str, bytes)
 
 
 def _as_msgpack_reads(values: list[Any]) -> bool:
-    """Whether ``values`` (as msgspec read them, UNSET for absent) are what msgpack's reader
-    would have given: plain values, lists, and maps with string keys only (msgpack refuses
-    other keys; msgspec reads extension types and timestamps into other types)."""
+    """Whether ``values`` (as msgspec read them) are what msgpack's reader would have given:
+    plain values, lists, and maps with string keys only (msgpack refuses other keys; msgspec
+    reads extension types and timestamps into other types)."""
     stack = values
     while stack:
         v = stack.pop()
         t = type(v)
-        if t in _PLAIN or v is msgspec.UNSET:
+        if t in _PLAIN:
             continue
         if t is list:
             stack.extend(v)

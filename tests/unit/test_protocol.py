@@ -50,14 +50,36 @@ def test_round_trip(msg):
     assert type(P.decode_any(msg.encode())) is type(msg)
 
 
-def test_arrays_are_zero_copy_views():
-    payload = MESSAGES[0].encode()
-    msg = P.TransitionBatch.decode(payload)
-    whole = np.frombuffer(payload, np.uint8)
-    for k, a in msg.data.items():
-        assert not a.flags.writeable, k
-        assert np.shares_memory(a, whole), f"{k} was copied out of the payload"
-    assert np.shares_memory(msg.priorities, whole)
+def _big_batch(b=5):
+    """``_batch`` with an image large enough to be read in place (P.VIEW_MIN_BYTES)."""
+    return {**_batch(b), "obs/image": np.random.default_rng(1).integers(0, 256, (b, 128, 128, 3), dtype=np.uint8)}
+
+
+#: messages long enough for the view reader (a large uint8 array in each array map)
+BIG_MESSAGES = [
+    P.TransitionBatch("actor-1", 7, 3, _big_batch(), np.ones(5, np.float32)),
+    P.TransitionBatch("actor-1", 7, 3, {"obs": np.arange(5, dtype=np.int64), "action": np.zeros(5, np.int64),
+                                        "reward": np.zeros(5, np.float32)}, np.ones(5, np.float32),
+                      frames={"obs": np.zeros((6, 96, 96, 3), np.uint8)}, frame_base=10),
+    P.SampleReply(4, "ok", "", 100, np.arange(5, dtype=np.int64), np.full(5, 0.01), np.ones(5, np.float32), _big_batch()),
+    P.Gradients("w0", 2, 40, {"w": np.ones((2, 3), np.float32), "img": np.zeros(70000, np.uint8)}),
+]
+
+
+def test_large_uint8_arrays_are_views_on_the_payload_and_the_rest_aligned_copies():
+    for msg in BIG_MESSAGES[:3]:
+        payload = msg.encode()
+        assert len(payload) >= P.VIEW_MIN_BYTES
+        out = type(msg).decode(payload)
+        whole = np.frombuffer(payload, np.uint8)
+        arrays = {**out.data, **(getattr(out, "frames", None) or {})}
+        for k, a in arrays.items():
+            assert not a.flags.writeable, k
+            big = a.dtype == np.uint8 and a.nbytes >= P.VIEW_MIN_BYTES
+            assert np.shares_memory(a, whole) == big, f"{k}: {'copied' if big else 'a view'}"
+            assert a.flags.aligned, k
+    small = P.TransitionBatch.decode(MESSAGES[0].encode())
+    assert not small.data["obs/lidar"].flags.writeable
 
 
 def _outcome(fn):
@@ -86,11 +108,15 @@ def test_the_view_reader_accepts_and_refuses_exactly_what_msgpack_s_reader_does(
     of an array map changed, a field dropped, a byte flipped): decode gives the same message or
     the same rejection (field and reason) as reading the envelope with msgpack."""
     rng = np.random.default_rng(0)
+    corpus = BIG_MESSAGES * 3 + MESSAGES  # half of the draws long enough for the view reader
+    viewed = 0
     for _ in range(4000):
-        msg = MESSAGES[rng.integers(len(MESSAGES))]
+        msg = corpus[rng.integers(len(corpus))]
         env = msgpack.unpackb(msg.encode(), raw=False)
         op = rng.random()
-        if op < 0.45:
+        if op < 0.1:
+            pass  # as sent
+        elif op < 0.45:
             env[[*env, "extra"][rng.integers(len(env) + 1)]] = _ODD[rng.integers(len(_ODD))]
         elif op < 0.8:
             maps = [v for v in env.values() if isinstance(v, dict) and v]
@@ -114,6 +140,10 @@ def test_the_view_reader_accepts_and_refuses_exactly_what_msgpack_s_reader_does(
         else:
             for f in msg.__dataclass_fields__:
                 assert _eq(getattr(want[1], f), getattr(got[1], f)), (f, env)
+            whole = np.frombuffer(payload, np.uint8)
+            viewed += any(isinstance(v, dict) and any(np.shares_memory(a, whole) for a in v.values())
+                          for v in vars(got[1]).values())
+    assert viewed > 120, f"the view reader read only {viewed} messages"
 
 
 def _env(**over):
