@@ -190,6 +190,11 @@ class ExportedPlayer:
         self.n_actions = int(self.meta.get("n_actions", 0))
         self.keys = list(self.meta["inputs"])
         self.dict_obs = self.keys != ["obs"]
+        #: a mixed policy's member count (``zenrl export --member``); 1 for one network
+        self.members = int(self.meta.get("members", 1))
+        if self.members > 1 and not hasattr(self.module, "pick"):
+            raise ZenrlError(f"exported policy {str(path)!r}: zenrl.json names {self.members} members, the program has no pick()")
+        self.rng = np.random.default_rng()
 
     def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
         """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
@@ -206,10 +211,15 @@ class ExportedPlayer:
             raise ZenrlError(f"{self.name}: exported for {self.n_actions} actions, the env has {action_space}")
 
     def reseed(self, seed: int | None) -> None:
-        """Nothing to reseed: the exported policy is greedy."""
+        """Restart the draw of a mixed policy's members from ``seed`` (one network: greedy,
+        nothing to draw)."""
+        self.rng = np.random.default_rng(seed)
 
     def reset(self) -> None:
-        """Nothing to reset: an exported policy has no state between observations."""
+        """A match begins: a mixed policy seats a member drawn uniformly (one network: no state
+        between observations, nothing to do)."""
+        if self.members > 1:
+            self.module.pick(int(self.rng.integers(self.members)))
 
     def __call__(self, obs: Any) -> int:
         with torch.no_grad():
@@ -228,7 +238,11 @@ def initial_q_weights(path: str | os.PathLike[str], exported: bool) -> dict[str,
     if exported:
         if not is_exported(path):
             raise ZenrlError(f"learner.init_from {str(path)!r} is not a `zenrl export` file (learner.init_exported is set)")
-        module = ExportedPlayer(path).module
+        player = ExportedPlayer(path)
+        if player.members > 1:
+            raise ZenrlError(f"learner.init_from {str(path)!r} is a mixed policy of {player.members} networks; "
+                             "a learner starts from one (name one of its checkpoints)")
+        module = player.module
         sd = {k[len("net."):]: v.detach().clone() for k, v in module.state_dict().items() if k.startswith("net.")}
         if not sd:
             raise ZenrlError(f"learner.init_from {str(path)!r}: the exported file holds no Q-network weights")

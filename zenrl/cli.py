@@ -472,7 +472,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "export")
     tools.quiet_native_imports()
-    tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs)))
+    tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.member))
     return 0
 
 
@@ -665,6 +665,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("export", help="the greedy policy as a TorchScript file (torch.jit.load, no zenrl needed)")
     policy_args(s)
     s.add_argument("--out", required=True, help="output .pt file")
+    s.add_argument("--member", action="append", default=[], metavar="CHECKPOINT",
+                   help="another checkpoint of the same env (repeatable): the file is a mixed policy, one member "
+                        "(drawn uniformly) playing each match")
     s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("average", help="one checkpoint whose policy weights are the mean of several checkpoints' "

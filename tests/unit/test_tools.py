@@ -244,6 +244,50 @@ def test_export_matches_greedy_actions(ckpts, tmp_path, which):
     assert json.loads(extra["zenrl.json"])["n_actions"] == meta["n_actions"]
 
 
+@pytest.mark.parametrize("which", ["cartpole", "match"])
+def test_a_mixed_export_plays_the_member_it_seats(ckpts, tmp_path, which):
+    """``zenrl export --member``: each member's actions are its own checkpoint's greedy ones;
+    ExportedPlayer seats a member per match, uniformly, reproducibly per seed."""
+    first = ckpts[which]
+    kwargs = SHORT_MATCH if which == "match" else {}
+    env_id = BW if which == "match" else "CartPole-v1"
+    others = [make_checkpoint(tmp_path / f"m{i}", env_id, kwargs, seed=10 + i) for i in range(2)]
+    out = tmp_path / "mix.pt"
+    assert cli_main(["export", "--checkpoint", str(first), "--member", str(others[0]), "--member", str(others[1]),
+                     "--out", str(out)]) == 0
+    env = make_env(tools.env_config_for(read_checkpoint(first).run_config()))
+    observations = _observations(env, 24, seed=2)
+    refs = [[int(load_policy(c, env.observation_space, env.action_space).batch(single_to_flat(o))[0])
+             for o in observations] for c in (first, *others)]
+    assert len({tuple(r) for r in refs}) == 3  # three different policies: the seat is observable
+    player = tools.ExportedPlayer(out)
+    assert player.members == 3
+    for i, ref in enumerate(refs):
+        player.module.pick(i)
+        assert [player(o) for o in observations] == ref, f"member {i}"
+    with pytest.raises(Exception, match="out of range"):
+        player.module.pick(3)
+    seats = []
+    player.reseed(7)
+    for _ in range(300):
+        player.reset()
+        seats.append(int(player.module.current))
+    counts = np.bincount(seats, minlength=3)
+    assert counts.min() > 70, counts  # uniform: 100 each expected
+    player.reseed(7)
+    again = []
+    for _ in range(300):
+        player.reset()
+        again.append(int(player.module.current))
+    assert again == seats
+    env.close()
+
+
+def test_a_mixture_refuses_members_of_another_env(ckpts, tmp_path):
+    with pytest.raises(ZenrlError, match="a mixture plays one env"):
+        tools.export(str(ckpts["match"]), str(tmp_path / "x.pt"), members=[str(ckpts["cartpole"])])
+
+
 def test_exported_policy_loads_without_zenrl(ckpts, tmp_path):
     out = tmp_path / "policy.pt"
     tools.export(str(ckpts["match"]), str(out))

@@ -97,7 +97,10 @@ class EpisodeRunner:
         options = {}
         if job.opponent in self.frozen:
             self.switch.current = self.frozen[job.opponent]
-            reset = getattr(self.switch.current, "reset", None)  # a player is any obs -> action callable
+            reseed = getattr(self.switch.current, "reseed", None)  # a player is any obs -> action callable
+            if reseed is not None:
+                reseed(job.seed + 1)  # a mixed policy's member: the job's own draw, whichever worker plays it
+            reset = getattr(self.switch.current, "reset", None)
             if reset is not None:
                 reset()
             options = {"opponent": "policy", "side": job.side}
@@ -338,9 +341,11 @@ class RoundRobinRunner:
         agent_side = "red" if job.red in self.policies else "blue"
         agent, other = (job.red, job.blue) if agent_side == "red" else (job.blue, job.red)
         player = self.policies[agent]
+        player.reseed(job.seed)  # a mixed policy's member (and any sampling): the job's own draw
         player.reset()
         if other in self.policies:
             self.switch.current = self.policies[other]
+            self.switch.current.reseed(job.seed + 1)
             self.switch.current.reset()
             options = {"opponent": "policy", "side": agent_side}
         else:
