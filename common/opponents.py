@@ -85,7 +85,8 @@ class Opponent:
         :class:`GreedyPolicy` (a recurrent one carries per-episode state)."""
         if self.net is not None:
             return GreedyPolicy(self.net, n_actions, name=self.name)
-        return self.player
+        for_env = getattr(self.player, "for_env", None)  # a mixed exported policy: a member per env
+        return for_env() if for_env is not None else self.player
 
 
 class OpponentPool:

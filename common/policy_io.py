@@ -14,6 +14,7 @@ frozen policies as match opponents (:mod:`zenrl.common.opponents`).
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -195,6 +196,18 @@ class ExportedPlayer:
         if self.members > 1 and not hasattr(self.module, "pick"):
             raise ZenrlError(f"exported policy {str(path)!r}: zenrl.json names {self.members} members, the program has no pick()")
         self.rng = np.random.default_rng()
+        #: the member this player's match is played by (seated in the program before each call)
+        self.current = 0
+
+    def for_env(self) -> "ExportedPlayer":
+        """A player for one env of several sharing this file's program: itself for one network;
+        for a mixed policy a copy (the same program) with its own member and draw, so that each
+        env's match keeps its member while the others' matches begin and end."""
+        if self.members == 1:
+            return self
+        seat = copy.copy(self)
+        seat.rng, seat.current = np.random.default_rng(), 0
+        return seat
 
     def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
         """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
@@ -219,9 +232,11 @@ class ExportedPlayer:
         """A match begins: a mixed policy seats a member drawn uniformly (one network: no state
         between observations, nothing to do)."""
         if self.members > 1:
-            self.module.pick(int(self.rng.integers(self.members)))
+            self.current = int(self.rng.integers(self.members))
 
     def __call__(self, obs: Any) -> int:
+        if self.members > 1:
+            self.module.pick(self.current)
         with torch.no_grad():
             if self.dict_obs:
                 x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}

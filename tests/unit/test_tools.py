@@ -263,22 +263,26 @@ def test_a_mixed_export_plays_the_member_it_seats(ckpts, tmp_path, which):
     player = tools.ExportedPlayer(out)
     assert player.members == 3
     for i, ref in enumerate(refs):
-        player.module.pick(i)
+        player.current = i
         assert [player(o) for o in observations] == ref, f"member {i}"
     with pytest.raises(Exception, match="out of range"):
         player.module.pick(3)
+    # envs of one process share the program: each env's seat keeps its own member
+    a, b = player.for_env(), player.for_env()
+    a.current, b.current = 1, 2
+    assert [(a(o), b(o)) for o in observations] == list(zip(refs[1], refs[2]))
     seats = []
     player.reseed(7)
     for _ in range(300):
         player.reset()
-        seats.append(int(player.module.current))
+        seats.append(player.current)
     counts = np.bincount(seats, minlength=3)
     assert counts.min() > 70, counts  # uniform: 100 each expected
     player.reseed(7)
     again = []
     for _ in range(300):
         player.reset()
-        again.append(int(player.module.current))
+        again.append(player.current)
     assert again == seats
     env.close()
 
