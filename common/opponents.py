@@ -298,6 +298,9 @@ class _Seat:
 
     def sit(self, player: Callable[[Any], int], epsilon: float) -> None:
         self.player, self.epsilon = player, float(epsilon)
+        reseed = getattr(player, "reseed", None)
+        if reseed is not None:  # what a player draws (a mixed policy's member) follows the seat's seed
+            reseed(int(self.rng.integers(2**63)))
         reset = getattr(player, "reset", None)
         if reset is not None:
             reset()  # a recurrent policy starts the episode from a zero state

@@ -89,6 +89,26 @@ def test_checkpoint_opponent_plays_its_greedy_actions_on_its_own_side(files, sid
         env.close()
 
 
+def test_a_mixed_exported_opponent_keeps_a_member_per_env_and_draws_it_per_match(files, tmp_path):
+    other = make_checkpoint(tmp_path / "other", BW, QUIET, seed=5)
+    mixed = tmp_path / "mixed.pt"
+    tools.export(str(files["match"]), mixed, members=[str(other)])
+    cfg = _cfg({"mix": {"path": str(mixed), "exported": True}})
+    envs = wrap_opponents([make_env(cfg.env), make_env(cfg.env)], cfg, "t", seed=0)
+    try:
+        seen = [[], []]
+        for _ in range(12):
+            for i, env in enumerate(envs):
+                env.reset()
+                seen[i].append(env.seat.player.current)
+        a, b = envs[0].seat.player, envs[1].seat.player
+        assert a is not b and a.module is b.module  # one program, a seat per env
+        assert set(seen[0]) == set(seen[1]) == {0, 1}  # each env draws both members across its matches
+    finally:
+        for env in envs:
+            env.close()
+
+
 def test_exported_opponent_needs_the_config_to_say_so(files):
     with pytest.raises(ConfigError, match=r"opponents\.pool\.ex: .*exported TorchScript.*exported: true"):
         check_opponents(_cfg({"ex": {"path": str(files["exported"])}}), make_env(_cfg({}).env))
