@@ -43,6 +43,7 @@ def record_episode(policy: GreedyPolicy, env: gym.Env, seed: int, options: Mappi
     summary {return, steps, winner, scores, side, opponent}). A match frame is framed in the
     agent's colour and captioned with its side, opponent and score."""
     match = is_match_env(env)
+    policy.reseed(seed)  # what the policy draws (a mixed policy's member) follows the episode's seed
     policy.reset()  # a recurrent policy starts the episode from a zero state
     obs, info = env.reset(seed=seed, options=dict(options) if options else None)
     ret, n, done = 0.0, 0, False
