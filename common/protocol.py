@@ -580,8 +580,6 @@ def _wire_map(w: _WireArray) -> dict[str, Any]:
     data = w.data
     if w.dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
         data = bytes(data)
-    if w.codec is msgspec.UNSET and w.size is msgspec.UNSET:
-        return {"dtype": w.dtype, "shape": w.shape, "data": data}
     m = {"dtype": w.dtype, "shape": w.shape, "data": data}
     if w.codec is not msgspec.UNSET:
         m["codec"] = w.codec
@@ -594,9 +592,9 @@ def _unpack_views(cls: type["Message"], payload: Any, max_bytes: int) -> dict[st
     """:func:`_unpack` of a ``cls`` message whose large uint8 arrays (images, frames; at least
     :data:`VIEW_MIN_BYTES`) stay in the payload: the arrays decoded from them are read-only
     views on ``payload``, not copies (a 64x64 camera chunk's frames are most of its bytes;
-    msgpack would copy each into a bytes object). A
-    payload this reader refuses (another type's fields, a value of an unexpected form, not
-    msgpack) is read by :func:`_unpack` and the checks after it, which name what is wrong."""
+    msgpack would copy each into a bytes object). A payload this reader refuses (another type's
+    fields, a value of an unexpected form, not msgpack) is read by :func:`_unpack` and the checks
+    after it, which name what is wrong."""
     if not isinstance(payload, (bytes, bytearray, memoryview)) or not VIEW_MIN_BYTES <= len(payload) <= max_bytes:
         return _unpack(payload, max_bytes)  # no array in it long enough for a view
     try:
