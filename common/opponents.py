@@ -67,7 +67,8 @@ class MatchResult:
 class Opponent:
     """A named opponent. ``kind``: "bot" (``bot`` names the env's scripted opponent),
     "checkpoint" or "snapshot" (``net``: the frozen policy network, shared by every env of the
-    process), "exported" (``player``: a stateless ``obs -> action`` callable, shared).
+    process), "exported" (``player``: an ``obs -> action`` callable, shared; a mixed policy's
+    envs each get a seat of their own, ``for_env``).
     ``weight``: its share in :func:`weighted_choice` (0: only drawn by name, as snapshots are);
     ``epsilon``: its random-action probability."""
 
