@@ -1,8 +1,8 @@
 """A3C end to end: `zenrl run --config configs/cartpole_a3c.yaml` starts a router, the A3C
 learner (parameter server), 2 workers and the evaluator as OS processes; with an update budget,
-the greedy eval return must rise clearly above a random policy's (~22 on CartPole-v1), the
-learner must have rejected nothing, its checkpoint must hold finite params, and nothing may be
-left running."""
+the greedy return (live evals, or the final checkpoint's) must rise clearly above a random
+policy's (~22 on CartPole-v1), the learner must have rejected nothing, its checkpoint must hold
+finite params, and nothing may be left running."""
 
 import json
 import uuid
@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from tests.conftest import run_zenrl, zenrl_pids
+from zenrl import tools
 from zenrl.common.checkpoints import A3CTrainingState, read_checkpoint
 
 pytestmark = pytest.mark.integration
@@ -31,7 +32,6 @@ def test_zenrl_run_a3c_learns_cartpole(tmp_path):
     assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]
     evals = [e["mean"] for e in summary["evals"]]
     assert evals, logs.get("evaluator.log")
-    assert max(evals) >= 5 * RANDOM_CARTPOLE_RETURN, (evals, logs.get("learner.log"))
     learner = summary["learner"]
     assert learner["updates"] >= 2000 and learner["version"] > 1
     assert learner["rejected_total"] == 0 and learner["params_restored"] == 0, learner
@@ -42,6 +42,10 @@ def test_zenrl_run_a3c_learns_cartpole(tmp_path):
     state = read_checkpoint(ckpts[-1])
     assert isinstance(state, A3CTrainingState) and state.updates >= 2000
     assert all(torch.isfinite(t).all() for t in state.policy_state().values())
+    # learned: the live evals, or the final checkpoint's greedy return on fixed seeds (a loaded
+    # machine runs the live evaluator only a few times before the update budget is spent)
+    final = tools.evaluate(str(ckpts[-1]), episodes=10, seed=7_000_000, progress=False)["rows"][0]["return_mean"]
+    assert max(*evals, final) >= 5 * RANDOM_CARTPOLE_RETURN, (evals, final, logs.get("learner.log"))
     assert (run_dir / "config.yaml").is_file() and (run_dir / "metrics.jsonl").is_file()
     assert list((run_dir / "tb").rglob("events.out.tfevents.*")), "no TensorBoard events"
     assert not _leftovers(run_id), _leftovers(run_id)
