@@ -35,7 +35,9 @@ Rounds alternate (raw, [store-only,] service, ...) and medians are compared:
 ``ingest_ratio_vs_raw_zenoh`` = median service rate / median raw rate (target >= 0.7).
 ``--baseline DIR`` adds, in the same rounds, service rounds on the replay of another zenrl
 checkout (run with DIR/.venv): ``service_vs_baseline`` is an A/B of the replay's code on the same
-machine, publishers and router.
+machine, publishers and router. With ``--images`` it also runs the in-process ingest of each
+kind with each checkout's code, each in a process of its own, alternating:
+``inprocess_cpu_baseline_vs_service`` (> 1: this checkout's ingest costs less CPU per chunk).
 
 Progress goes to stderr; the last stdout line is one JSON object.
 
@@ -49,7 +51,7 @@ For diagnosis: ``--kinds``, ``--rounds``, ``--service-only``, ``--service-set KE
 option for this checkout's replay only), ``--codec lz4``, ``--shm``.
 
 Internal roles (started by the benchmark itself): ``--role pub``, ``--role rawsub``,
-``--role sampler``.
+``--role sampler``, ``--role inproc``.
 """
 
 from __future__ import annotations
@@ -715,6 +717,26 @@ def inprocess_image_ingest(kind: str, duration_s: float, codec: str | None = Non
     return {"items_per_s": items / el, "us_per_chunk_cpu": cpu / chunks * 1e6}
 
 
+def role_inproc(args: argparse.Namespace) -> int:
+    """A child of ``--baseline`` A/Bs: :func:`inprocess_image_ingest` with the zenrl of the
+    interpreter that runs it (this checkout's, or the baseline's), printed as one JSON line."""
+    return emit(inprocess_image_ingest(args.kind, args.duration, args.codec))
+
+
+def inprocess_ab(procs: Procs, args: argparse.Namespace, kind: str, rounds: int, duration_s: float) -> dict[str, Any]:
+    """The in-process ingest of ``kind`` by this checkout's code and by ``--baseline``'s, each in a
+    fresh process of its own interpreter, alternating: ``{variant: [us CPU per chunk, ...]}``."""
+    out: dict[str, list[float]] = {}
+    for r in range(rounds):
+        for variant, checkout in variants(args).items():
+            name = f"inproc-{kind}-{variant}-{r}"
+            argv = [str(Path(__file__).resolve()), "--role", "inproc", "--kind", kind, "--duration", str(duration_s),
+                    *(["--codec", args.codec] if args.codec else [])]
+            res = communicate(procs, name, procs.start(name, argv, capture=True, checkout=checkout), 300)
+            out.setdefault(variant, []).append(round(res["us_per_chunk_cpu"], 1))
+    return out
+
+
 def checks_overhead(rounds: int, round_s: float) -> dict[str, Any]:
     """CPU time per chunk of the replay's ingest path (decode, validate, insert; batches of
     ``replay.ingest_batch_chunks`` = 32 chunks, as the ingest thread does) with the semantic checks
@@ -954,6 +976,9 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             ref = inprocess_image_ingest(kind, 1.0 if args.quick else 3.0, args.codec)
             log(f"[{kind}] reference: the service's ingest in process: {ref['items_per_s']:,.0f} items/s "
                 f"({ref['us_per_chunk_cpu']:.0f} us CPU per chunk)")
+            ab = inprocess_ab(procs, args, kind, rounds, 1.0 if args.quick else 3.0) if args.baseline else None
+            if ab:
+                log(f"[{kind}] in process, each checkout in its own process: {ab}")
             raw_med = statistics.median(x["items_per_s"] for x in raw)
             store_med = statistics.median(x["items_per_s"] for x in store)
             chunk_bytes = len(encoded_pool(0, 1, "pub0", kind, args.codec)[0])
@@ -981,6 +1006,10 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 "inprocess_us_per_chunk_cpu": round(ref["us_per_chunk_cpu"], 1),
                 "inprocess_ratio_vs_raw_zenoh": round(ref["items_per_s"] / raw_med, 3),
                 "store_only_us_per_chunk_cpu": median_of([x["threads"] for x in store if x["threads"]], "us_per_chunk"),
+                **({"inprocess_ab_us_per_chunk_cpu": ab,
+                    # > 1: this checkout's ingest costs less CPU per chunk than the baseline's
+                    "inprocess_cpu_baseline_vs_service": round(statistics.median(ab["baseline"])
+                                                               / statistics.median(ab["service"]), 3)} if ab else {}),
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
                 **({"learner_updates_per_s": learner_rates[kind]} if kind in learner_rates else {}),
                 "final_replay_stats": {v: (st.snapshot()[-1][1] if st.snapshot() else None) for v, (_, _, st) in replays.items()},
@@ -1071,7 +1100,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one short round of each measurement")
     ap.add_argument("--checks-only", action="store_true", help="only the semantic checks' cost per chunk, in process (~25 s)")
-    ap.add_argument("--role", choices=["pub", "rawsub", "sampler"], help=argparse.SUPPRESS)
+    ap.add_argument("--role", choices=["pub", "rawsub", "sampler", "inproc"], help=argparse.SUPPRESS)
     ap.add_argument("--mode", choices=["raw", "client"], default="client", help=argparse.SUPPRESS)
     ap.add_argument("--router", help=argparse.SUPPRESS)
     ap.add_argument("--run", help=argparse.SUPPRESS)
@@ -1112,6 +1141,8 @@ def main(argv: list[str] | None = None) -> int:
         return role_rawsub(args)
     if args.role == "sampler":
         return role_sampler(args)
+    if args.role == "inproc":
+        return role_inproc(args)
     # SIGTERM on the benchmark itself still runs the cleanup in orchestrate's finally
     stop_on_sigterm()
     return orchestrate_images(args) if args.images else orchestrate(args)
