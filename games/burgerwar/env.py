@@ -566,7 +566,13 @@ class BurgerWarEnv(gym.Env):
         obs = self._obs(k, lidar) if opp.needs_obs else None
         if lidar is not None:
             lidar = np.clip(lidar, geo.LIDAR_MIN, geo.LIDAR_MAX)
-        out = opp.act(OpponentView(x, y, yaw, self.judge.time, lidar, obs))
+        view = OpponentView(x, y, yaw, self.judge.time, lidar, obs)
+        if opp.needs_enemy:
+            view.enemy = geo.to_frame(*self._poses[1 - k], k)
+            # the agent's L, R, B markers (RE_* for red, BL_* for blue) that this opponent has read
+            first = geo.N_FIELD + 3 * (1 - k)
+            view.taken = tuple(bool(o == k + 1) for o in self.judge.owners[first:first + 3])
+        out = opp.act(view)
         if opp.needs_obs:
             return self._to_cmd(out)
         v, w = out

@@ -8,7 +8,9 @@ opponents (frozen policies), an action of the env's action space.
 
 ``view`` is an :class:`OpponentView`: ``x, y, yaw`` own-frame pose, ``lidar`` float32[360]
 noisy ranges (None unless ``needs_lidar``), ``obs`` the observation an agent on that side would
-get (None unless ``needs_obs``), ``time`` seconds.
+get (None unless ``needs_obs``), ``time`` seconds; for ``needs_enemy`` opponents ``enemy`` the
+enemy's true own-frame pose (x, y, yaw) and ``taken`` which of the enemy's L, R, B markers this
+opponent has read.
 """
 
 from __future__ import annotations
@@ -31,15 +33,19 @@ class OpponentView:
     time: float
     lidar: np.ndarray | None = None
     obs: Any = None
+    enemy: tuple[float, float, float] | None = None
+    taken: tuple[bool, bool, bool] = (False, False, False)
 
 
 class Opponent:
-    """Base class. ``hz``: decision rate; ``needs_lidar``/``needs_obs``: what ``act`` needs."""
+    """Base class. ``hz``: decision rate; ``needs_lidar``/``needs_obs``/``needs_enemy``: what
+    ``act`` needs."""
 
     name = "base"
     hz = 10.0
     needs_lidar = False
     needs_obs = False
+    needs_enemy = False
 
     def reset(self, rng: np.random.Generator) -> None:
         self.rng = rng
@@ -264,7 +270,7 @@ WAYPOINT_TOUR = ("FriedShrimp_S", "OctopusWiener_S", "OctopusWiener_N", "FriedSh
                  "FriedShrimp_W", "Pudding_N", "Pudding_S")
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=1024)
 def nav_field(gx: float, gy: float) -> np.ndarray:
     """float64[N, N] path distance (m) to goal (gx, gy) over a NAV_CELL grid of [-1.7, 1.7]^2,
     through cells at least NAV_CLEARANCE from walls and boxes (inf where unreachable)."""
@@ -380,6 +386,67 @@ class Waypoint(Opponent):
         return v, w
 
 
+class Raider(Waypoint):
+    """A hunter of robot markers: knows where the enemy is (its true pose, as a contestant's
+    robot with a good enemy detector would) and goes for the enemy's L, R and B markers (3, 3 and
+    5 points, which stay read) before anything else: it drives along the grid path field to the
+    reachable shooting spot ``standoff`` m off the nearest marker it has not read yet, turning to
+    the marker once it is close enough to read it. With all three read it tours the field
+    markers as :class:`Waypoint` (without the face-the-enemy override). A learner that never met
+    it tends to leave its back open while it contests a field marker. 10 Hz."""
+
+    name = "raider"
+    needs_enemy = True
+
+    def __init__(self, standoff: float = 0.35, read_within: float = 0.6, **kw):
+        super().__init__(see_range=0.0, **kw)
+        self.standoff, self.read_within = standoff, read_within
+
+    def act(self, view):
+        if view.enemy is None or all(view.taken):
+            return super().act(view)
+        pos, nrm = geo.robot_markers_world(*view.enemy)
+        c, s = math.cos(view.yaw), math.sin(view.yaw)
+        cx, cy = view.x + geo.CAMERA_X * c, view.y + geo.CAMERA_X * s
+        best = None
+        for j in range(3):
+            if view.taken[j]:
+                continue
+            vx, vy = cx - pos[j, 0], cy - pos[j, 1]
+            d = math.hypot(vx, vy)
+            if 0.15 < d < self.read_within and vx * nrm[j, 0] + vy * nrm[j, 1] > 0.6 * d:
+                # in front of the marker and close: turn the camera onto it
+                err = float(geo.wrap(math.atan2(-vy, -vx) - view.yaw))
+                return (0.05 if d > 0.3 else 0.0) * max(0.0, math.cos(err)), float(np.clip(2.0 * err, -1.5, 1.5))
+            spot = pos[j] + self.standoff * nrm[j]
+            if geo.point_static_clearance(spot[:1], spot[1:])[0] < NAV_CLEARANCE:
+                continue  # against a wall or a box: not reachable now
+            dist = math.hypot(spot[0] - view.x, spot[1] - view.y)
+            if best is None or dist < best[0]:
+                best = (dist, float(spot[0]), float(spot[1]))
+        if best is None:  # every unread marker faces an obstacle: wait for the enemy to move, near it
+            ex, ey = view.enemy[0], view.enemy[1]
+            best = (math.hypot(ex - view.x, ey - view.y), ex, ey)
+        dist, gx, gy = best
+        # the goal moves with the enemy: snap it to a 0.1 m grid so the path fields are reused
+        D = nav_field(round(gx, 1), round(gy, 1))
+        n = D.shape[0]
+        if dist < 0.25:
+            want = math.atan2(gy - view.y, gx - view.x)
+        else:
+            pts = np.array([view.x, view.y]) + self.probe
+            ix = np.clip(((pts[:, 0] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
+            iy = np.clip(((pts[:, 1] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
+            d = D[iy, ix]
+            want = (math.atan2(gy - view.y, gx - view.x) if not np.isfinite(d).any()
+                    else math.atan2(self.probe[int(np.argmin(d)), 1], self.probe[int(np.argmin(d)), 0]))
+        err = float(geo.wrap(want - view.yaw))
+        v = 0.2 * max(0.0, math.cos(err)) ** 3 * min(1.0, dist / 0.15 + 0.3)
+        if view.lidar is not None and view.lidar[np.abs(self.bear) <= math.radians(20)].min() < 0.16:
+            v = min(v, 0.0) - 0.05
+        return v, float(np.clip(2.0 * err, -1.5, 1.5))
+
+
 class PolicyOpponent(Opponent):
     """A frozen policy: ``fn(obs) -> action`` with ``obs`` in its own frame like the agent's."""
 
@@ -396,7 +463,7 @@ class PolicyOpponent(Opponent):
 
 
 SCRIPTED = {"idle": Idle, "random": RandomDrive, "cheese": Cheese, "teriyaki": Teriyaki,
-            "clubhouse": Clubhouse, "waypoint": Waypoint}
+            "clubhouse": Clubhouse, "waypoint": Waypoint, "raider": Raider}
 OPPONENT_NAMES = tuple(SCRIPTED) + ("policy",)
 
 
