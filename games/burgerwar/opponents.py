@@ -401,10 +401,38 @@ class Raider(Waypoint):
     def __init__(self, standoff: float = 0.35, read_within: float = 0.6, **kw):
         super().__init__(see_range=0.0, **kw)
         self.standoff, self.read_within = standoff, read_within
+        ang = np.array([0.0, 0.45, -0.45, 0.8, -0.8])
+        #: (angle off the normal, distance) of the candidate spots, the preferred first
+        self._cands = [(a, d) for d in (standoff, 0.7 * standoff) for a in ang]
+
+    def _offsets(self, n: np.ndarray) -> np.ndarray:
+        """float[K, 2]: candidate spot offsets from a marker with unit normal ``n``."""
+        out = np.empty((len(self._cands), 2))
+        for i, (a, d) in enumerate(self._cands):
+            c, s = math.cos(a), math.sin(a)
+            out[i] = d * (c * n[0] - s * n[1]), d * (s * n[0] + c * n[1])
+        return out
+
+    def reset(self, rng):
+        super().reset(rng)
+        self._still = (0.0, 0.0, 0.0, 0.0)  # (x, y, yaw, since): where it last moved
+        self._back_until = -1.0
 
     def act(self, view):
         if view.enemy is None or all(view.taken):
             return super().act(view)
+        # wedged against the enemy or a wall (no move, no turn for 2 s): back off for a second
+        t = view.time
+        x0, y0, yaw0, since = self._still
+        if math.hypot(view.x - x0, view.y - y0) > 0.03 or abs(geo.wrap(view.yaw - yaw0)) > 0.1:
+            self._still = (view.x, view.y, view.yaw, t)
+        elif t - since > 2.0:
+            self._back_until, self._still = t + 1.0, (view.x, view.y, view.yaw, t)
+        if t < self._back_until:
+            return -0.1, 0.8
+        return self._hunt(view)
+
+    def _hunt(self, view):
         pos, nrm = geo.robot_markers_world(*view.enemy)
         c, s = math.cos(view.yaw), math.sin(view.yaw)
         cx, cy = view.x + geo.CAMERA_X * c, view.y + geo.CAMERA_X * s
@@ -418,16 +446,24 @@ class Raider(Waypoint):
                 # in front of the marker and close: turn the camera onto it
                 err = float(geo.wrap(math.atan2(-vy, -vx) - view.yaw))
                 return (0.05 if d > 0.3 else 0.0) * max(0.0, math.cos(err)), float(np.clip(2.0 * err, -1.5, 1.5))
-            spot = pos[j] + self.standoff * nrm[j]
-            if geo.point_static_clearance(spot[:1], spot[1:])[0] < NAV_CLEARANCE:
+            # shooting spots in the marker's read cone: straight out, or up to 46 degrees off
+            # its normal, nearer where a wall or a box is in the way
+            spots = pos[j] + self._offsets(nrm[j])
+            free = geo.point_static_clearance(spots[:, 0], spots[:, 1]) >= NAV_CLEARANCE
+            if not free.any():
                 continue  # against a wall or a box: not reachable now
-            dist = math.hypot(spot[0] - view.x, spot[1] - view.y)
-            if best is None or dist < best[0]:
-                best = (dist, float(spot[0]), float(spot[1]))
+            spots = spots[free]
+            dists = np.hypot(spots[:, 0] - view.x, spots[:, 1] - view.y)
+            i = int(np.argmin(dists))
+            if best is None or dists[i] < best[0]:
+                best = (float(dists[i]), float(spots[i, 0]), float(spots[i, 1]), pos[j])
         if best is None:  # every unread marker faces an obstacle: wait for the enemy to move, near it
             ex, ey = view.enemy[0], view.enemy[1]
-            best = (math.hypot(ex - view.x, ey - view.y), ex, ey)
-        dist, gx, gy = best
+            best = (math.hypot(ex - view.x, ey - view.y), ex, ey, None)
+        dist, gx, gy, mark = best
+        if dist < 0.08 and mark is not None:  # on the spot: face the marker
+            err = float(geo.wrap(math.atan2(mark[1] - view.y, mark[0] - view.x) - view.yaw))
+            return 0.0, float(np.clip(2.0 * err, -1.5, 1.5))
         # the goal moves with the enemy: snap it to a 0.1 m grid so the path fields are reused
         D = nav_field(round(gx, 1), round(gy, 1))
         n = D.shape[0]
@@ -440,6 +476,16 @@ class Raider(Waypoint):
             d = D[iy, ix]
             want = (math.atan2(gy - view.y, gx - view.x) if not np.isfinite(d).any()
                     else math.atan2(self.probe[int(np.argmin(d)), 1], self.probe[int(np.argmin(d)), 0]))
+        # the path field does not know the enemy's body: go round it, not through it
+        rx, ry = view.x - view.enemy[0], view.y - view.enemy[1]
+        r = math.hypot(rx, ry)
+        if r < 0.45:
+            push = 0.5 * (0.45 - r) / 0.45 / max(r, 0.05)
+            hx, hy = math.cos(want) + push * rx / max(r, 0.05), math.sin(want) + push * ry / max(r, 0.05)
+            # and slide along it, on the side of the goal
+            side = 1.0 if rx * (gy - view.y) - ry * (gx - view.x) > 0 else -1.0
+            hx, hy = hx - side * 0.6 * ry / max(r, 0.05), hy + side * 0.6 * rx / max(r, 0.05)
+            want = math.atan2(hy, hx)
         err = float(geo.wrap(want - view.yaw))
         v = 0.2 * max(0.0, math.cos(err)) ** 3 * min(1.0, dist / 0.15 + 0.3)
         if view.lidar is not None and view.lidar[np.abs(self.bear) <= math.radians(20)].min() < 0.16:
