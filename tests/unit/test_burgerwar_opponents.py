@@ -99,3 +99,46 @@ def test_bad_opponent_options():
         BurgerWarEnv(opponents="nope")
     with pytest.raises(ValueError):
         BurgerWarEnv(opponents="policy")  # needs opponent_policy
+
+
+@pytest.mark.parametrize("side", ["red", "blue"])
+def test_raider_reads_every_robot_marker_of_an_enemy_in_the_open(side):
+    """The agent drives a little out of its corner and stops; the raider reads its L, R and B
+    within 45 s (the last of them after about 21 s)."""
+    env = BurgerWarEnv(opponents="raider", side=side)
+    try:
+        env.reset(seed=1)
+        opp, prefix = ("b", "RE_") if side == "red" else ("r", "BL_")
+        robot = set()
+        for i in range(10 ** 4):
+            _, _, term, _, info = env.step(0 if i < 12 else STOP)  # (0.2, 0): forward
+            robot |= {c["name"] for c in info["captures"] if c["player"] == opp and c["name"].startswith(("RE_", "BL_"))}
+            if term or len(robot) == 3 or info["war_state"]["time"] > 45.0:
+                break
+        assert robot == {prefix + m for m in ("L", "R", "B")}, robot
+    finally:
+        env.close()
+
+
+def test_raider_view_has_the_enemy_pose_and_what_it_took():
+    """The env gives a ``needs_enemy`` opponent the agent's true pose in the opponent's own
+    frame and which of the agent's robot markers the opponent owns."""
+    env = BurgerWarEnv(opponents="raider", side="red", lidar_noise=0.0)
+    try:
+        env.reset(seed=0)
+        seen = []
+        act = env.opponent.act
+        env.opponent.act = lambda view: (seen.append(view), act(view))[1]
+        env.set_poses((0.3, -0.5, 0.2), (0.0, 1.3, -np.pi / 2))
+        names = list(bo.geo.TARGET_NAMES)
+        env.judge.owners[names.index("RE_R")] = 2  # blue (the raider) holds the agent's right marker
+        env.judge.owners[names.index("RE_B")] = 1  # not the raider's: red's own code
+        env.step(STOP)
+        v = seen[-1]
+        # blue's own frame is the world turned 180 degrees
+        assert v.enemy[0] == pytest.approx(-0.3, abs=0.02) and v.enemy[1] == pytest.approx(0.5, abs=0.02)
+        assert np.cos(v.enemy[2] - (0.2 + np.pi)) == pytest.approx(1.0, abs=1e-3)
+        assert v.taken == (False, True, False)
+        assert bo.Waypoint().needs_enemy is False and v.obs is None
+    finally:
+        env.close()
