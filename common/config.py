@@ -306,7 +306,7 @@ class OpponentSpec(_Section):
     """One named match opponent of ``opponents.pool``: a scripted ``bot`` or a frozen policy
     read from ``path``."""
 
-    bot: Optional[str] = Field(None, description="A scripted bot of the match env by name (idle, random, cheese, teriyaki, clubhouse, waypoint).")
+    bot: Optional[str] = Field(None, description="A scripted bot of the match env by name (idle, random, cheese, teriyaki, clubhouse, waypoint, raider).")
     path: Optional[str] = Field(None, description="A frozen policy: a checkpoint file (read weights only), or with exported: true a `zenrl export` file. Relative to the working directory.")
     exported: bool = Field(False, description="path is a `zenrl export` TorchScript file: a program that runs code when loaded, so set it only for files you trust (e.g. models/*.pt).")
     weight: float = Field(1.0, gt=0, description="Relative probability of drawing this opponent for an episode.")
