@@ -364,20 +364,28 @@ class Waypoint(Opponent):
             if self._dwell_until is not None and t >= self._dwell_until:
                 self._next(t)
             return 0.0, float(np.clip(2.0 * err, -1.5, 1.5))
-        D = nav_field(gx, gy)
-        n = D.shape[0]
+        return self._drive(view, self._path_heading(view, gx, gy, dist), dist)
+
+    def _path_heading(self, view, gx: float, gy: float, dist: float, snap: bool = False) -> float:
+        """The heading (rad, own frame) down the grid path field to (gx, gy), ``dist`` m away
+        (with ``snap``, the field of the goal rounded to 0.1 m): straight at the goal within
+        0.25 m, or where the field has no finite cell around."""
         if dist < 0.25:
-            want = math.atan2(gy - view.y, gx - view.x)
-        else:
-            pts = np.array([view.x, view.y]) + self.probe
-            ix = np.clip(((pts[:, 0] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
-            iy = np.clip(((pts[:, 1] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
-            d = D[iy, ix]
-            if not np.isfinite(d).any():
-                want = math.atan2(gy - view.y, gx - view.x)
-            else:
-                j = int(np.argmin(d))
-                want = math.atan2(self.probe[j, 1], self.probe[j, 0])
+            return math.atan2(gy - view.y, gx - view.x)
+        D = nav_field(round(gx, 1), round(gy, 1)) if snap else nav_field(gx, gy)
+        n = D.shape[0]
+        pts = np.array([view.x, view.y]) + self.probe
+        ix = np.clip(((pts[:, 0] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
+        iy = np.clip(((pts[:, 1] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
+        d = D[iy, ix]
+        if not np.isfinite(d).any():
+            return math.atan2(gy - view.y, gx - view.x)
+        j = int(np.argmin(d))
+        return math.atan2(self.probe[j, 1], self.probe[j, 0])
+
+    def _drive(self, view, want: float, dist: float) -> tuple[float, float]:
+        """(v, w) turning onto heading ``want``, slowing for the turn and the last ``dist`` m,
+        backing off a wall closer than 0.16 m ahead."""
         err = float(geo.wrap(want - view.yaw))
         w = float(np.clip(2.0 * err, -1.5, 1.5))
         v = 0.2 * max(0.0, math.cos(err)) ** 3 * min(1.0, dist / 0.15 + 0.3)
@@ -464,18 +472,9 @@ class Raider(Waypoint):
         if dist < 0.08 and mark is not None:  # on the spot: face the marker
             err = float(geo.wrap(math.atan2(mark[1] - view.y, mark[0] - view.x) - view.yaw))
             return 0.0, float(np.clip(2.0 * err, -1.5, 1.5))
-        # the goal moves with the enemy: snap it to a 0.1 m grid so the path fields are reused
-        D = nav_field(round(gx, 1), round(gy, 1))
-        n = D.shape[0]
-        if dist < 0.25:
-            want = math.atan2(gy - view.y, gx - view.x)
-        else:
-            pts = np.array([view.x, view.y]) + self.probe
-            ix = np.clip(((pts[:, 0] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
-            iy = np.clip(((pts[:, 1] + geo.ARENA_HALF_DIAG) / NAV_CELL).astype(int), 0, n - 1)
-            d = D[iy, ix]
-            want = (math.atan2(gy - view.y, gx - view.x) if not np.isfinite(d).any()
-                    else math.atan2(self.probe[int(np.argmin(d)), 1], self.probe[int(np.argmin(d)), 0]))
+        # the goal moves with the enemy: its path field is that of the goal snapped to a 0.1 m
+        # grid, so that fields are reused
+        want = self._path_heading(view, gx, gy, dist, snap=True)
         # the path field does not know the enemy's body: go round it, not through it
         rx, ry = view.x - view.enemy[0], view.y - view.enemy[1]
         r = math.hypot(rx, ry)
@@ -486,11 +485,7 @@ class Raider(Waypoint):
             side = 1.0 if rx * (gy - view.y) - ry * (gx - view.x) > 0 else -1.0
             hx, hy = hx - side * 0.6 * ry / max(r, 0.05), hy + side * 0.6 * rx / max(r, 0.05)
             want = math.atan2(hy, hx)
-        err = float(geo.wrap(want - view.yaw))
-        v = 0.2 * max(0.0, math.cos(err)) ** 3 * min(1.0, dist / 0.15 + 0.3)
-        if view.lidar is not None and view.lidar[np.abs(self.bear) <= math.radians(20)].min() < 0.16:
-            v = min(v, 0.0) - 0.05
-        return v, float(np.clip(2.0 * err, -1.5, 1.5))
+        return self._drive(view, want, dist)
 
 
 class PolicyOpponent(Opponent):
