@@ -22,7 +22,7 @@ import pybullet as p
 from gymnasium import spaces
 
 from zenrl.games.burgerwar import geometry as geo
-from zenrl.games.burgerwar.judge import BLUE, NEUTRAL, RED, Judge, match_outcome
+from zenrl.games.burgerwar.judge import BLUE, NEUTRAL, RED, Judge, match_outcome, robot_marker_points
 from zenrl.games.burgerwar.opponents import OPPONENT_NAMES, OpponentView, make_opponent
 from zenrl.games.burgerwar.render import TopDownRenderer
 
@@ -140,7 +140,9 @@ class BurgerWarEnv(gym.Env):
     ``winner`` ("r"/"b"/"draw"/None), ``reward_components``, ``side``, ``opponent``; on the step
     that ends the match (``terminated``, or ``truncated`` by ``max_steps``) also ``outcome``
     ("win" | "draw" | "loss" from the agent's side, :func:`~zenrl.games.burgerwar.judge.match_outcome`),
-    ``my_score`` and ``enemy_score`` (ints). Generic code (``EnvBatch``, the evaluator) learns a
+    ``my_score`` and ``enemy_score`` (ints), and ``my_robot_points`` / ``enemy_robot_points``:
+    the part of each score read from the other robot's markers
+    (:func:`~zenrl.games.burgerwar.judge.robot_marker_points`). Generic code (``EnvBatch``, the evaluator) learns a
     match's result from these keys alone; a match cut off by an outer TimeLimit wrapper has
     not finished and has none.
     """
@@ -633,6 +635,7 @@ class BurgerWarEnv(gym.Env):
         info = self._info(captures, comps)
         if terminated or truncated:
             info["outcome"], info["my_score"], info["enemy_score"] = match_outcome(info)
+            info["my_robot_points"], info["enemy_robot_points"] = robot_marker_points(info)
         return obs, reward, terminated, truncated, info
 
     def _ramp(self, k: int, dt: float) -> tuple[float, float]:

@@ -171,3 +171,21 @@ def match_outcome(info: Mapping[str, Any]) -> tuple[str, int, int] | None:
         return ("win" if mine > theirs else "loss"), mine, theirs
     winner = info.get("winner")
     return ("draw" if winner in (None, "draw") else ("win" if winner == me else "loss")), mine, theirs
+
+
+def robot_marker_points(info: Mapping[str, Any]) -> tuple[int, int] | None:
+    """(my points, enemy points) from robot markers (L, R, B: read from the other robot, they
+    stay read) in the ``info`` of a match step, or None for an info without a match. A match's
+    score is these plus the field markers held at the end: how a match was won, e.g. by
+    reading an enemy that left its back open while it contested a field marker."""
+    if "war_state" not in info or "side" not in info:
+        return None
+    me = "r" if info["side"] == "red" else "b"
+    mine = theirs = 0
+    for t in info["war_state"]["targets"]:
+        if t["name"].startswith(("RE_", "BL_")) and t["player"] != "n":
+            if t["player"] == me:
+                mine += int(t["point"])
+            else:
+                theirs += int(t["point"])
+    return mine, theirs

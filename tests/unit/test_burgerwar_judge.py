@@ -239,3 +239,49 @@ def test_env_sudden_death_ends_with_stop_when_the_agent_scores():
         assert info["war_state"]["time"] < 5.5
     finally:
         env.close()
+
+
+def test_robot_marker_points_split_each_score_by_where_it_came_from():
+    """Field markers held count for the score, not for the robot-marker points; a robot marker
+    counts its points (3, 3, 5) for whoever read it, from each side's point of view."""
+    from zenrl.games.burgerwar.judge import robot_marker_points
+
+    j = Judge()
+    j.read(red_reads=[IDX["BL_B"], IDX[FIELD[0]]])  # red: the enemy's back (5) and a field marker
+    j.read(blue_reads=[IDX["RE_L"], IDX[FIELD[1]], IDX[FIELD[2]]])  # blue: red's left (3), two field
+    ws = j.war_state()
+    assert ws["scores"] == {"r": 6, "b": 5}
+    assert robot_marker_points({"side": "red", "war_state": ws}) == (5, 3)
+    assert robot_marker_points({"side": "blue", "war_state": ws}) == (3, 5)
+    assert robot_marker_points({"side": "red", "war_state": Judge().war_state()}) == (0, 0)
+    assert robot_marker_points({"TimeLimit.truncated": True}) is None
+
+
+def test_env_reports_robot_marker_points_at_the_end_of_a_match():
+    """The real env's last step carries each side's robot-marker points, from the agent's side:
+    a raider reads the markers of an agent that stands in the open."""
+    from zenrl.games.burgerwar.env import BurgerWarEnv
+
+    env = BurgerWarEnv(opponents="raider", side="blue", match_time=30.0, sudden_death_time=0.0)
+    try:
+        env.reset(seed=1)
+        term = trunc = False
+        i = 0
+        while not (term or trunc):
+            _, _, term, trunc, info = env.step(0 if i < 12 else 2)
+            i += 1
+            assert ("my_robot_points" in info) == (term or trunc)
+        targets = info["war_state"]["targets"]
+        taken = sum(t["point"] for t in targets if t["name"].startswith("BL_") and t["player"] == "r")
+        read = sum(t["point"] for t in targets if t["name"].startswith("RE_") and t["player"] == "b")
+        assert taken >= 6  # at least L and R in 30 s
+        assert (info["my_robot_points"], info["enemy_robot_points"]) == (read, taken)
+        field = {"r": 0, "b": 0}
+        for t in targets:
+            if not t["name"].startswith(("RE_", "BL_")) and t["player"] != "n":
+                field[t["player"]] += t["point"]
+        # the rest of each score is the field markers it holds
+        assert info["my_score"] - info["my_robot_points"] == field["b"]
+        assert info["enemy_score"] - info["enemy_robot_points"] == field["r"]
+    finally:
+        env.close()

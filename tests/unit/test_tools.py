@@ -492,6 +492,20 @@ def test_evaluate_table_fits_80_columns():
     text = console.export_text()
     assert max(len(x) for x in text.splitlines()) <= 80 and "…" not in text, text
     assert "66% [" in text and "clubhouse" in text and "waypoint" in text, text
+    # with each side's robot-marker points (a match env's results): one more column, still 80
+    for r in results:
+        r.robot_points = (11, 0) if r.opponent == "waypoint" else (3, 5)
+    summary = tools.summarize(results, match=True)
+    rows = {r["opponent"]: r for r in summary["rows"]}
+    assert rows["waypoint"]["robot_points_mean"] == 11.0 and rows["clubhouse"]["enemy_robot_points_mean"] == 5.0
+    summary.update({"env": "zenrl/BurgerWar-v0", "checkpoint": "runs/x/checkpoints/ckpt-000000123456.pt"})
+    console = Console(width=80, record=True)
+    console.print(tools.render_table(summary))
+    text = console.export_text()
+    assert max(len(x) for x in text.splitlines()) <= 80 and "…" not in text, text
+    assert "11.0/0.0" in text and "3.0/5.0" in text, text
+    results[0].robot_points = None  # a match without them (another env): no column
+    assert "robot_points_mean" not in tools.summarize(results, match=True)["rows"][0]
 
 
 def test_plot_breaks_at_a_resume_and_draws_env_steps(tmp_path):

@@ -17,7 +17,7 @@ import torch
 
 from zenrl.common.errors import ZenrlError
 from zenrl.common.ratings import PairRecord, fit_ratings
-from zenrl.games.burgerwar.judge import match_outcome
+from zenrl.games.burgerwar.judge import match_outcome, robot_marker_points
 from zenrl.games.burgerwar.opponents import OPPONENT_NAMES
 from zenrl.tools.loading import (MATCH_OPPONENTS, is_match_env, load_player, load_policy_env, quiet_native_imports,
                                  resolve_checkpoint)
@@ -44,6 +44,7 @@ class EpisodeResult:
     outcome: str | None = None  # "win" | "draw" | "loss" (match envs)
     my_score: int | None = None
     enemy_score: int | None = None
+    robot_points: tuple[int, int] | None = None  # (mine, the enemy's) from robot markers
 
 
 def split_opponents(opponents: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -118,6 +119,7 @@ class EpisodeRunner:
             # the env's own result (info["outcome"]); a match cut off by an outer TimeLimit has none and is judged here
             res.outcome, res.my_score, res.enemy_score = ((info["outcome"], info["my_score"], info["enemy_score"]) if "outcome" in info
                                                           else match_outcome(info))
+            res.robot_points = robot_marker_points(info)
         return res
 
     def close(self) -> None:
@@ -172,10 +174,15 @@ def summarize(results: Iterable[EpisodeResult], match: bool) -> dict[str, Any]:
         m, lo, hi = mean_ci(diff)
         by_side = {side: {"episodes": sum(r.side == side for r in rs),
                           "wins": sum(r.side == side and r.outcome == "win" for r in rs)} for side in ("red", "blue")}
-        rows.append({"opponent": opp, "episodes": n, "wins": w, "draws": d, "losses": l_,
-                     "win_rate": w / n if n else float("nan"), "win_rate_ci95": list(wilson(w, n)),
-                     "score_diff_mean": m, "score_diff_ci95": [lo, hi],
-                     "return_mean": float(np.mean([r.ret for r in rs])), "by_side": by_side})
+        row = {"opponent": opp, "episodes": n, "wins": w, "draws": d, "losses": l_,
+               "win_rate": w / n if n else float("nan"), "win_rate_ci95": list(wilson(w, n)),
+               "score_diff_mean": m, "score_diff_ci95": [lo, hi],
+               "return_mean": float(np.mean([r.ret for r in rs])), "by_side": by_side}
+        if n and all(r.robot_points is not None for r in rs):
+            # how the matches were won: points read from the other robot's markers, each side
+            row["robot_points_mean"] = float(np.mean([r.robot_points[0] for r in rs]))
+            row["enemy_robot_points_mean"] = float(np.mean([r.robot_points[1] for r in rs]))
+        rows.append(row)
     n_all = len(results)
     w_all = sum(r.outcome == "win" for r in results)
     return {"kind": "match", "episodes": n_all, "rows": rows,
@@ -282,6 +289,10 @@ def render_table(summary: Mapping[str, Any]):
     tot = summary["total"]
     t.add_row("all", str(tot["episodes"]), f"{tot['wins']}/{tot['draws']}/{tot['losses']}",
               f"{tot['win_rate']:.0%} {_fmt_ci(tot['win_rate_ci95'], True)}", "", style="bold")
+    if all("robot_points_mean" in r for r in summary["rows"]):
+        t.caption = "points a match from the other robot's markers, mine/its: " + ", ".join(
+            f"{Path(r['opponent']).name} {r['robot_points_mean']:.1f}/{r['enemy_robot_points_mean']:.1f}"
+            for r in summary["rows"])
     return t
 
 
