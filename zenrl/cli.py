@@ -51,7 +51,7 @@ ROLE_OPTIONS: dict[str, tuple[str, ...]] = {
     "actor": ("algo", "run_id", "runs_dir", "seed", "actor", "a3c", "impala", "r2d2", "selfplay", "opponents", "network",
               "env", "transport", "learner.gamma", "league", "replay.shards"),
     "evaluator": ("algo", "run_id", "runs_dir", "seed", "evaluator", "r2d2", "network", "env", "transport", "league"),
-    "exporter": ("run_id", "transport", "actor.num_actors"),
+    "exporter": ("run_id", "transport", "actor.num_actors", "league"),
     "league": ("run_id", "runs_dir", "seed", "league", "opponents.pool", "transport"),
 }
 
@@ -552,7 +552,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--port", type=int, default=9464, help="HTTP port of /metrics")
     s.add_argument("--host", default="0.0.0.0", help="address to listen on (default every interface)")
     s.add_argument("--expected-actors", type=int, default=None,
-                   help="actor processes the run should have (default actor.num_actors): zenrl_actors_expected")
+                   help="actor processes the run should have (default actor.num_actors, or the agent's "
+                        "league.agents.<ID>.num_actors with --agent): zenrl_actors_expected")
+    s.add_argument("--agent", metavar="ID", help="watch a league agent's processes (a key of league.agents): its "
+                   "run id <run>.<ID> and actor count, as zenrl run gives them (a cluster's league)")
     s.add_argument("--poll-s", type=float, default=1.0, help="how often the liveliness tokens are polled (seconds)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_exporter)

@@ -293,7 +293,7 @@ def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
     league_run = None
     run_ids: dict[str, set[str]] = {}  # agent -> the run ids its processes (and their probes) resolve
     roles: dict[str, set[str]] = {}
-    exporter_run = None
+    exporter_run = exporter_actors = None
     for name, w in workloads(docs).items():
         spec = w["spec"]["template"]["spec"]
         # an exploiter's reset is an exit (75) that the kubelet must answer with a restart
@@ -304,10 +304,14 @@ def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
             args = zenrl_parser().parse_args(c["args"])
             env = _container_env(docs, c)
             config = _mounted_file(docs, spec, c, args.config, tmp_path / name)
-            run_id = resolve(config, env, getattr(args, "agent", None)).run_id
+            resolved = resolve(config, env, getattr(args, "agent", None))
+            run_id = resolved.run_id
             role = c["args"][0]
             if role == "exporter":
                 exporter_run = run_id
+                # zenrl_actors_expected: main's actor count (the config's own default may differ)
+                moved = load_config(config, ["league.agents.main.num_actors=5"], environ=env)
+                exporter_actors = args.expected_actors or (agent_config(moved, args.agent) if args.agent else moved).actor.num_actors
                 continue
             if role == "league":
                 league_run = run_id
@@ -340,6 +344,7 @@ def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
         assert roles[agent] == want, (agent, roles[agent])
     assert len({i for ids in run_ids.values() for i in ids}) == len(run_ids), f"agents share a run id: {run_ids}"
     assert exporter_run == f"{league_run}.main"
+    assert exporter_actors == 5, "the exporter expects another count of actors than main's"
 
 
 def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):
