@@ -3,12 +3,15 @@ OS processes on a real router: `zenrl league`, and the exploiter's `zenrl replay
 learner --auto-resume` and `zenrl actor`, each started with `--agent exploiter`. When the league
 starts the exploiter's next generation, each of the three deletes its old generation's files (the
 learner's checkpoints, the replay's durable log) and exits with status 75; started again, as a
-restart policy would, the learner starts fresh instead of resuming the old generation."""
+restart policy would, the learner starts fresh instead of resuming the old generation. The
+agent's `zenrl exporter --agent exploiter` watches its run id with its own actor count."""
+
+import urllib.request
 
 import pytest
 import yaml
 
-from tests.conftest import wait_until
+from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -25,7 +28,7 @@ def config(tmp_path):
            "learner": {"batch_size": 32, "checkpoint_interval_s": 1.0, "publish_every_updates": 5},
            "league": {"enabled": True, "bots": ["cheese"], "exploiter_reset_s": 30, "stats_interval_s": 0.5,
                       "save_interval_s": 1.0, "min_games": 100000, "snapshot_interval_s": 100000,
-                      "agents": {"main": {"role": "main"}, "exploiter": {"role": "exploiter"}}}}
+                      "agents": {"main": {"role": "main"}, "exploiter": {"role": "exploiter", "num_actors": 3}}}}
     path = tmp_path / "league.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path
@@ -40,6 +43,21 @@ def test_an_exploiters_processes_reset_themselves_on_a_new_generation(tmp_path, 
              "learner": ["learner", *common, "--agent", "exploiter", "--auto-resume"],
              "actor": ["actor", *common, "--agent", "exploiter", "--id", "ex-a0", "--slot", "0"]}
     ps = {name: procs.zenrl(f"exploiter-{name}", argv) for name, argv in roles.items()}
+
+    # the agent's exporter (--agent): its run id, and its own actor count as the expected one
+    port = free_port()
+    procs.zenrl("exploiter-exporter", ["exporter", *common, "--agent", "exploiter", "--port", str(port),
+                                       "--host", "127.0.0.1"])
+
+    def scrape() -> str:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+                return r.read().decode()
+        except OSError:
+            return ""
+
+    wait_until(lambda: f'zenrl_actors_expected{{run="{run_id}.exploiter"}} 3.0' in scrape(), 60,
+               "the exporter's expected actors of the exploiter (3, its league.agents entry)", interval_s=0.5)
 
     # generation 0 trains: checkpoints and a durable log appear, the markers say 0
     wait_until(lambda: ckpts.is_dir() and any(ckpts.glob("ckpt-*.pt")), 120, "the exploiter's first checkpoint",
