@@ -142,9 +142,9 @@ class BurgerWarEnv(gym.Env):
     ("win" | "draw" | "loss" from the agent's side, :func:`~zenrl.games.burgerwar.judge.match_outcome`),
     ``my_score`` and ``enemy_score`` (ints), and ``my_robot_points`` / ``enemy_robot_points``:
     the part of each score read from the other robot's markers
-    (:func:`~zenrl.games.burgerwar.judge.robot_marker_points`). Generic code (``EnvBatch``, the evaluator) learns a
-    match's result from these keys alone; a match cut off by an outer TimeLimit wrapper has
-    not finished and has none.
+    (:func:`~zenrl.games.burgerwar.judge.robot_marker_points`). Generic code (``EnvBatch``, the
+    evaluator) learns a match's result from these keys alone; a match cut off by an outer
+    TimeLimit wrapper has not finished and has none.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
