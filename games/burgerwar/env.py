@@ -107,8 +107,13 @@ class BurgerWarEnv(gym.Env):
         detection limit.
       lidar_noise (0.01): gaussian sigma (m) of the lidar, drawn from ``np_random``.
       privileged (False): add ``obs["enemy_pose"]`` float32[4] (x, y, cos, sin in own frame).
-      flatten_obs (False): one float32 vector (lidar, pose, mask, game[, enemy_pose]); vector
-        variant only.
+      enemy_detector (False): add ``obs["enemy_seen"]`` float32[3] (seen, x forward, y left of
+        the robot, m): the other robot as a detector on the robot's own lidar scan finds it
+        (:func:`~zenrl.games.burgerwar.geometry.detect_circle`: in line of sight and range, its
+        position from the noisy readings; zeros when not seen). Not privileged: the scan holds
+        it, this names it, as contest teams' enemy detectors do.
+      flatten_obs (False): one float32 vector (lidar, pose, mask, game[, enemy_pose][,
+        enemy_seen]); vector variant only.
       match_time (180), sudden_death_time (60), call_diff (10): judge rules.
       win_bonus (5.0): terminal +-bonus of the zero_sum reward.
       wall_dist (0.2 m), wall_penalty (-0.5), far_dist (1.0 m), far_penalty (-0.5): the users'
@@ -134,7 +139,7 @@ class BurgerWarEnv(gym.Env):
     ``pose`` float32[4] (x, y, cos yaw, sin yaw), ``mask`` float32[18] (12 field markers, my 3
     (L, R, B), enemy's 3 (L, R, B); 0 mine, 1 neutral, 2 enemy's), ``game`` float32[4]
     (time / match_time, sudden-death flag, my score / 10, enemy score / 10), optional
-    ``enemy_pose`` and ``image``.
+    ``enemy_pose``, ``enemy_seen`` and ``image``.
 
     info: ``war_state`` (the judge's JSON shape), ``captures`` (events this step),
     ``winner`` ("r"/"b"/"draw"/None), ``reward_components``, ``side``, ``opponent``; on the step
@@ -155,7 +160,8 @@ class BurgerWarEnv(gym.Env):
                  opponent_policy: Callable[[Any], Any] | None = None, control_hz: int = 10,
                  physics_hz: int = 60, capture_hz: int = 10, action_set: str = "users",
                  reward: str = "users", read_range: float = 0.8, read_angle: float = 60.0,
-                 lidar_noise: float = 0.01, privileged: bool = False, flatten_obs: bool = False,
+                 lidar_noise: float = 0.01, privileged: bool = False, enemy_detector: bool = False,
+                 flatten_obs: bool = False,
                  match_time: float = 180.0, sudden_death_time: float = 60.0, call_diff: int = 10,
                  win_bonus: float = 5.0, wall_dist: float = 0.2, wall_penalty: float = -0.5,
                  far_dist: float = 1.0, far_penalty: float = -0.5, start_noise: float = 0.0,
@@ -191,6 +197,7 @@ class BurgerWarEnv(gym.Env):
         self._cos_read = math.cos(math.radians(read_angle))
         self.lidar_noise = float(lidar_noise)
         self.privileged = bool(privileged)
+        self.enemy_detector = bool(enemy_detector)
         self.flatten_obs = bool(flatten_obs)
         self.win_bonus = float(win_bonus)
         self.wall_dist, self.wall_penalty = float(wall_dist), float(wall_penalty)
@@ -287,6 +294,9 @@ class BurgerWarEnv(gym.Env):
         }
         if self.privileged:
             parts["enemy_pose"] = parts["pose"]
+        if self.enemy_detector:
+            m = geo.LIDAR_MAX + 2 * geo.HOUSING_R
+            parts["enemy_seen"] = (np.array([0.0, -m, -m]), np.array([1.0, m, m]))
         if self.flatten_obs:
             self._flat_keys = list(parts)
             lo = np.concatenate([parts[k][0] for k in parts]).astype(np.float32)
@@ -499,6 +509,9 @@ class BurgerWarEnv(gym.Env):
         if self.privileged:
             ex, ey, eyaw = geo.to_frame(*self._poses[1 - k], k)
             obs["enemy_pose"] = np.array([ex, ey, math.cos(eyaw), math.sin(eyaw)], np.float32)
+        if self.enemy_detector:
+            obs["enemy_seen"] = geo.detect_circle(lidar, self._poses[k],
+                                                  geo.housing_circle(*self._poses[1 - k]))
         if self.flatten_obs:
             return np.concatenate([obs[key] for key in self._flat_keys])
         if self.image if image is None else image:

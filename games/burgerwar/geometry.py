@@ -11,6 +11,7 @@ Shapes used below: ``S`` = number of 2D segments, ``B`` = number of lidar beams 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -247,6 +248,46 @@ class Lidar:
 def housing_circle(x: float, y: float, yaw: float) -> tuple[float, float, float]:
     """The lidar-housing circle (cx, cy, r) of a robot at world pose (x, y, yaw)."""
     return (x + HOUSING_X * math.cos(yaw), y + HOUSING_X * math.sin(yaw), HOUSING_R)
+
+
+def detect_circle(ranges: np.ndarray, pose: Sequence[float], circle: Sequence[float],
+                  tol: float = 0.05) -> np.ndarray:
+    """What a detector on robot ``pose``'s own scan makes of ``circle`` (the other robot's
+    housing): float32[3] (seen, x, y), x forward and y left of the robot's base, in metres.
+
+    ``ranges``: the robot's raw scan, float[B] (noisy, unclipped; beam i at yaw + 2*pi*i/B).
+    The other robot counts as seen when at least one beam that points at the circle reads the
+    circle's own range there (within ``tol``) and inside the sensor's range, so it is not
+    hidden by a wall, a box, or distance. Its position is taken from the scan as a detector on
+    the real robot would: the nearest such beam's reading plus the circle's radius, along that
+    beam; (0, 0, 0) when not seen. No knowledge beyond the scan and the robot's footprint.
+    """
+    x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
+    ox, oy = x + LIDAR_X * math.cos(yaw), y + LIDAR_X * math.sin(yaw)
+    cx, cy, r = float(circle[0]), float(circle[1]), float(circle[2])
+    d = math.hypot(cx - ox, cy - oy)
+    out = np.zeros(3, np.float32)
+    if d <= r or d - r > LIDAR_MAX:
+        return out
+    beams = len(ranges)
+    step = 2 * math.pi / beams
+    bearing = math.atan2(cy - oy, cx - ox) - yaw
+    half = math.asin(r / d)
+    lo, hi = math.ceil((bearing - half) / step), math.floor((bearing + half) / step)
+    if hi < lo:  # the circle falls between two beams
+        return out
+    idx = np.arange(lo, hi + 1)
+    delta = idx * step - bearing  # each beam's angle off the centre's bearing
+    expect = d * np.cos(delta) - np.sqrt(np.maximum(r * r - (d * np.sin(delta)) ** 2, 0.0))
+    got = np.asarray(ranges, dtype=np.float64)[idx % beams]
+    hit = (np.abs(got - expect) <= tol) & (got >= LIDAR_MIN) & (got <= LIDAR_MAX)
+    if not hit.any():
+        return out
+    j = int(np.argmin(np.where(hit, np.abs(delta), np.inf)))
+    ang = float(idx[j]) * step
+    dist = float(got[j]) + r
+    out[:] = (1.0, LIDAR_X + dist * math.cos(ang), dist * math.sin(ang))
+    return out
 
 
 # --------------------------------------------------------------------------------------

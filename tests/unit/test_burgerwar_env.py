@@ -332,3 +332,60 @@ def test_reset_options_and_max_steps(make):
     for i in range(3):
         _, _, term, trunc, _ = env.step(2)
     assert trunc and not term
+
+
+def test_enemy_detector_hand_geometry():
+    """detect_circle against positions worked out by hand on a noise-free scan."""
+    lidar = geo.Lidar()
+    me = (-0.9, 0.0, 0.0)  # facing +x, left of the central box, in the open
+    # the enemy's housing centre 0.5 m ahead of my lidar (which sits LIDAR_X behind my base)
+    c = (-0.9 + geo.LIDAR_X + 0.5, 0.0, geo.HOUSING_R)
+    ranges = lidar.scan(*me, circle=c)
+    assert ranges[0] == pytest.approx(0.5 - geo.HOUSING_R, abs=1e-5)
+    seen = geo.detect_circle(ranges, me, c)
+    # beam 0 hits the near face at 0.5 - r; centre = reading + r along beam 0
+    np.testing.assert_allclose(seen, [1.0, geo.LIDAR_X + 0.5, 0.0], atol=1e-5)
+    # the same distance to my left: facing -y, world +x is my left; my lidar is at
+    # (-0.9, +0.032), so (x forward, y left) = (LIDAR_X, 0.5)
+    me_left = (-0.9, 0.0, -math.pi / 2)
+    c_left = (-0.9 + 0.5, -geo.LIDAR_X, geo.HOUSING_R)
+    ranges = lidar.scan(*me_left, circle=c_left)
+    np.testing.assert_allclose(geo.detect_circle(ranges, me_left, c_left), [1.0, geo.LIDAR_X, 0.5],
+                               atol=1e-5)
+    me = (0.0, -1.0, 0.0)
+    c = (geo.LIDAR_X + 0.8, -1.0, geo.HOUSING_R)
+    # behind the central box (0.35 m square at the origin): the scan reads the box, not it
+    me_box = (0.0, -1.0, math.pi / 2)
+    c_box = (0.0, 1.0, geo.HOUSING_R)
+    ranges = lidar.scan(*me_box, circle=c_box)
+    assert ranges[0] < 1.0  # the box's face
+    np.testing.assert_array_equal(geo.detect_circle(ranges, me_box, c_box), [0.0, 0.0, 0.0])
+    # beyond the sensor's 3.5 m: not seen even with a clear line (a scan without walls)
+    far = (geo.LIDAR_X + 3.6, -1.0, geo.HOUSING_R)
+    fake = np.full(360, np.inf)
+    fake[0] = 3.6 - geo.HOUSING_R
+    np.testing.assert_array_equal(geo.detect_circle(fake, me, far), [0.0, 0.0, 0.0])
+    # a reading that disagrees with the circle's range (something in between) is not it
+    near = np.full(360, np.inf)
+    near[0] = 0.8 - geo.HOUSING_R - 0.2
+    np.testing.assert_array_equal(geo.detect_circle(near, me, c), [0.0, 0.0, 0.0])
+
+
+def test_enemy_detector_obs_both_sides(make):
+    """obs["enemy_seen"] in the env: the robot's own frame, both sides, flattened last."""
+    for side, k in (("red", 0), ("blue", 1)):
+        env = make(side=side, opponents="idle", lidar_noise=0.0, enemy_detector=True)
+        env.reset(seed=0)
+        me = np.array([-0.9, 0.0, 0.0])
+        enemy = np.array([-0.4, 0.1, 0.0])
+        red, blue = (me, enemy) if k == 0 else (enemy, me)
+        obs = env.set_poses(red, blue)
+        cx, cy, _ = geo.housing_circle(*enemy)
+        # the enemy's housing centre relative to my base, my yaw 0: world dx, dy
+        np.testing.assert_allclose(obs["enemy_seen"], [1.0, cx - me[0], cy - me[1]], atol=0.02)
+        assert env.observation_space.contains(obs)
+    flat = make(opponents="idle", lidar_noise=0.0, enemy_detector=True, privileged=True,
+                flatten_obs=True)
+    obs, _ = flat.reset(seed=0)
+    assert obs.shape == (360 + 4 + 18 + 4 + 4 + 3,)
+    np.testing.assert_array_equal(obs[-3:], [0.0, 0.0, 0.0])  # the central box between them
