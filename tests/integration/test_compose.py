@@ -45,6 +45,7 @@ pytestmark = pytest.mark.integration
 COMPOSE = ROOT / "docker-compose.yml"
 SECURE = ROOT / "docker-compose.secure.yml"
 LEAGUE = ROOT / "docker-compose.league.yml"
+LEAGUE_SECURE = ROOT / "docker-compose.league-secure.yml"
 DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 ZENOH_DIR = ROOT / "deploy" / "zenoh"
 CERTS_DIR = ZENOH_DIR / "certs"  # written by gen-certs.sh, not in git
@@ -159,7 +160,7 @@ def test_compose_files_are_complete_and_consistent():
     from zenrl.cli import build_parser
     from zenrl.common.config import load_config
 
-    for files in ((COMPOSE,), (COMPOSE, SECURE), (COMPOSE, LEAGUE)):
+    for files in ((COMPOSE,), (COMPOSE, SECURE), (COMPOSE, LEAGUE), (COMPOSE, LEAGUE, SECURE, LEAGUE_SECURE)):
         # every variable has a default: `docker compose up` needs no .env
         for name, default in raw_variables(*files):
             assert default is not None, f"${{{name}}} in {[f.name for f in files]} has no default"
@@ -213,7 +214,9 @@ def test_compose_files_are_complete_and_consistent():
             env = {k: str(v) for k, v in svc["environment"].items()}
             proto, host = re.match(r"^(tcp|tls)/([^:]+):(\d+)$", env["ZENRL_ROUTER"]).group(1, 2)
             assert host == rname
-            assert (proto == "tls") == (files[-1] == SECURE), (name, env["ZENRL_ROUTER"])
+            assert (proto == "tls") == (SECURE in files), (name, env["ZENRL_ROUTER"])
+            if SECURE in files:  # a login of the credentials volume, or the router refuses it
+                assert {"ZENRL__TRANSPORT__CLIENT_CONFIG", "ZENRL_ACTOR_LOGINS"} & set(env), f"{name} has no login"
             # the config the service reads, with its environment, is valid
             named = {v: Path("/nonexistent") for v in model["volumes"]}
             cfg = load_config(host_path(svc, args.config, named), environ=env)
@@ -224,7 +227,7 @@ def test_compose_files_are_complete_and_consistent():
             if svc.get("restart") != "no":
                 assert svc.get("restart") in ("always", "unless-stopped", "on-failure"), name
 
-        if files[-1] == LEAGUE:
+        if LEAGUE in files:
             _check_league_services(zs, parser)
         for name, svc in setup_services(model).items():
             parser.parse_args(svc["command"])
@@ -273,17 +276,20 @@ def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
         assert {"replay", "learner", "actor"} <= roles, (agent, roles)
 
 
-def test_secure_compose_makes_fresh_credentials(tmp_path):
+@pytest.mark.parametrize("files", [(COMPOSE, SECURE), (COMPOSE, LEAGUE, SECURE, LEAGUE_SECURE)],
+                         ids=["cluster", "league"])
+def test_secure_compose_makes_fresh_credentials(tmp_path, files):
     """The secured compose file makes its credentials on the first `up` (the one-shot
     `credentials` service, which the router waits for) and every service reads its login from
-    that volume: no service mounts the repository's development passwords. Running the service's
-    command writes exactly the files the router and the services are given."""
+    that volume: no service mounts the repository's development passwords; each role's login is
+    its own (a league's second agent too), every actor of any agent takes one from the pool.
+    Running the service's command writes exactly the files the router and the services are given."""
     import zenoh
 
     from zenrl.cli import build_parser
     from zenrl.identity import is_dev_password, make_credentials, read_users
 
-    model = load_compose(COMPOSE, SECURE)
+    model = load_compose(*files)
     (setup_name, setup), = setup_services(model).items()
     args = build_parser().parse_args(setup["command"])
     assert args.func.__name__ == "cmd_credentials" and not args.dev and not args.force
@@ -314,16 +320,22 @@ def test_secure_compose_makes_fresh_credentials(tmp_path):
     for name, svc in zenrl_services(model, profiles=("gpu", "tools", "monitoring")).items():
         env = svc["environment"]
         assert not any("deploy/zenoh/users.txt" in v or "deploy/zenoh/client-" in v for v in svc["volumes"]), name
-        if name == "actor":
+        role = svc["command"][0]
+        if role == "actor":
             pool = creds / in_credentials(svc, env["ZENRL_ACTOR_LOGINS"] + "/x")
             logins = sorted(pool.parent.glob("client-actor-*.json5"))
             assert len(logins) == args.actors, name
-            files = logins
+            client_files = logins
         else:
-            files = [creds / in_credentials(svc, env["ZENRL__TRANSPORT__CLIENT_CONFIG"])]
-        for f in files:
+            client_files = [creds / in_credentials(svc, env["ZENRL__TRANSPORT__CLIENT_CONFIG"])]
+        for f in client_files:
             auth = json.loads(zenoh.Config.from_file(str(f)).get_json("transport/auth/usrpwd"))
             assert users.get(auth["user"]) == auth["password"], (name, f.name)
+            if role == "actor":
+                assert re.fullmatch(r"actor-\d+", auth["user"]), (name, auth["user"])
+            else:  # the role's own login; watchers (status, exporter, league status) the monitor's
+                watcher = role in ("status", "exporter") or svc["command"][:2] == ["league", "status"]
+                assert auth["user"] == ("monitor" if watcher else role), (name, auth["user"])
             ca = json.loads(zenoh.Config.from_file(str(f)).get_json("transport/link/tls/root_ca_certificate"))
             assert host_path(svc, ca, {}) == str(CERTS_DIR / "ca.pem"), (name, ca)
     acl = json.loads(zenoh.Config.from_file(str(creds / router_cfg)).get_json("access_control"))
@@ -950,18 +962,13 @@ def test_docker_image_runs_zenrl_run_from_any_directory(docker_images, workdir):
     assert r.returncode == 0 and "max_updates 200 reached" in r.stdout + r.stderr, docker_output(r)
 
 
-@pytest.mark.timeout(1800)
-def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_path):
-    """docker-compose.league.yml on a real engine: the league and both agents' services come up
-    (--agent); when the league starts the exploiter's next generation, its replay, learner and
-    actor containers exit with status 75 by themselves, the engine's restart policy starts them
-    again, and the new generation plays matches; the main agent's services are not restarted."""
-    from zenrl.common import protocol as P
-    from zenrl.common.transport import Node
-
+def _small_league_config(tmp_path: Path, exploiter_reset_s: float) -> Path:
+    """configs/cluster_league.yaml made quick for a test: matches of at most 40 steps, a small
+    network and replay, league stats every 0.5 s; a file the containers' user can read."""
     doc = yaml.safe_load((ROOT / "configs" / "cluster_league.yaml").read_text())
     doc["env"]["kwargs"].update(match_time=6.0, sudden_death_time=2.0)  # matches of at most 40 steps
-    doc["league"].update(exploiter_reset_s=45, stats_interval_s=0.5, ticket_rate_per_s=1000, ticket_burst=1000,
+    doc["league"].update(exploiter_reset_s=exploiter_reset_s, stats_interval_s=0.5, ticket_rate_per_s=1000,
+                         ticket_burst=1000,
                          agents={"main": {"role": "main", "envs_per_actor": 4},
                                  "exploiter": {"role": "exploiter", "envs_per_actor": 2,
                                                "overrides": {"replay.capacity": 5000}}})
@@ -972,6 +979,19 @@ def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_p
     cfg_path = tmp_path / "league.yaml"
     cfg_path.write_text(yaml.safe_dump(doc))
     cfg_path.chmod(0o644)
+    return cfg_path
+
+
+@pytest.mark.timeout(1800)
+def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_path):
+    """docker-compose.league.yml on a real engine: the league and both agents' services come up
+    (--agent); when the league starts the exploiter's next generation, its replay, learner and
+    actor containers exit with status 75 by themselves, the engine's restart policy starts them
+    again, and the new generation plays matches; the main agent's services are not restarted."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    cfg_path = _small_league_config(tmp_path, exploiter_reset_s=45)
     cluster = DockerCluster((COMPOSE, LEAGUE), run_id, docker_images, actors=1)
     cluster.env.update(ZENRL_LEAGUE_CONFIG=str(cfg_path), ZENRL_EXPLOITER_ACTORS="1")
 
@@ -1004,4 +1024,57 @@ def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_p
             for svc in ("replay", "learner", "actor", "league"):
                 assert restarts(svc) == 0, f"{svc} restarted\n{cluster.logs(svc)[-3000:]}"
     finally:
+        cluster.cleanup()
+
+
+@pytest.mark.timeout(1800)
+def test_docker_secure_league_cluster(docker_images, run_id, tmp_path):
+    """docker-compose.league-secure.yml over the league and secured files, on a real engine:
+    every service connects over TLS with a login of the first `up`'s credentials; both agents'
+    actors take distinct actor logins from the one pool (two identities for one actor of each);
+    both agents' matches reach the league and both learners train; `league-status` answers with
+    the monitor login."""
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed (needed by deploy/zenoh/gen-certs.sh)")
+    cfg_path = _small_league_config(tmp_path, exploiter_reset_s=3600)
+    cluster = DockerCluster((COMPOSE, LEAGUE, SECURE, LEAGUE_SECURE), run_id, docker_images, actors=1)
+    cluster.env.update(ZENRL_LEAGUE_CONFIG=str(cfg_path), ZENRL_EXPLOITER_ACTORS="1")
+    nodes: list[Any] = []
+    try:
+        cluster.compose("up", "-d", timeout=900)
+        login = cluster.login("monitor", tmp_path)
+        agents = {a: Monitor(cluster.endpoint, f"{run_id}.{a}", login) for a in ("main", "exploiter")}
+        nodes += agents.values()
+        node = Node(cluster.endpoint, 60.0, config_file=login)
+        nodes.append(node)
+        stats = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
+        seen: dict[str, Any] = {}
+
+        def league(key: str, want: int) -> bool:
+            raw = stats.take()
+            if raw is not None:
+                seen.update(P.Stats.decode(raw).values)
+            return int(seen.get(key, 0)) >= want
+
+        for agent, svc in (("main", "actor"), ("exploiter", "actor-exploiter")):
+            wait_for(lambda a=agent: league(f"since_games/{a}", 3), 300, f"{agent}'s league matches", cluster, svc)
+        for agent, svc in (("main", "learner"), ("exploiter", "learner-exploiter")):
+            wait_for(lambda a=agent: agents[a].updates() >= 1, 300, f"{agent}'s learner updates", cluster, svc)
+
+        def ids(agent: str) -> set[str]:
+            with agents[agent].lock:
+                return set(agents[agent].actors)
+
+        wait_for(lambda: ids("main") and ids("exploiter"), 120, "both agents' actor stats", cluster, "actor")
+        main_ids, expl_ids = ids("main"), ids("exploiter")
+        assert main_ids | expl_ids == {"actor-0", "actor-1"} and not main_ids & expl_ids, (main_ids, expl_ids)
+        out = cluster.compose("run", "--rm", "-T", "league-status", timeout=180)
+        table = json.loads(out.stdout.strip().splitlines()[-1])
+        assert table["run_id"] == run_id and table["players"], table
+    finally:
+        for n in nodes:
+            n.close()
         cluster.cleanup()
