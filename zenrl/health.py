@@ -19,7 +19,9 @@ for a while although its input waits). Otherwise exit 1 with a one-line reason.
 passes, because restarting this process would not bring the router back (readiness probes
 leave it off, so a pod cut off from the router takes no traffic). ``{hostname}`` in ``--id`` or
 ``--id-prefix`` is replaced by this machine's host name (a pod's name in Kubernetes): actor ids
-are ``actor-<hostname>-<pid>``.
+are ``actor-<hostname>-<pid>``; ``{ordinal}`` in ``--id`` by the host name's last ``-<n>`` (a
+StatefulSet pod's index), ``{login}`` by the user name of ``transport.client_config`` (a secured
+actor's id is its login's, ``actor-<i>``).
 
 Prints one JSON object: ``{"ok": bool, "role", "ids": [...], "reason": str}``.
 """
@@ -36,7 +38,7 @@ import time
 
 from zenrl.common import protocol as P
 from zenrl.common.config import load_config
-from zenrl.common.errors import TransportError, ZenrlError
+from zenrl.common.errors import ConfigError, TransportError, ZenrlError
 from zenrl.common.transport import Node
 
 log = logging.getLogger(__name__)
@@ -56,8 +58,7 @@ def check(role: str, ident: str | None, prefix: str | None, stats_within_s: floa
     run_id = cfg.run_id or "default"
     k = P.Keys(run_id)
     host = socket.gethostname()
-    # {ordinal}: a StatefulSet pod's index (zenrl-actor-3 -> 3), the secured actor's login actor-<i>
-    ident = ident.replace("{hostname}", host).replace("{ordinal}", host.rsplit("-", 1)[-1]) if ident else None
+    ident = resolve_id(ident, host, cfg.transport.client_config) if ident else None
     prefix = prefix.replace("{hostname}", host) if prefix else None
     out: dict = {"ok": False, "role": role, "run_id": run_id, "ids": [], "reason": ""}
     try:
@@ -121,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m zenrl.health", description=__doc__.split("\n\n")[0])
     p.add_argument("--role", required=True, choices=("actor", "learner", "replay", "evaluator", "league"),
                    help="the process's role")
-    p.add_argument("--id", dest="ident", help="its exact id ({hostname}, and {ordinal}: the hostname's last -<n>, are replaced)")
+    p.add_argument("--id", dest="ident", help="its exact id ({hostname}, {ordinal}: the hostname's last -<n>, and "
+                   "{login}: the user name of its client config, are replaced)")
     p.add_argument("--id-prefix", help="or a prefix of its id, e.g. 'actor-{hostname}-'")
     p.add_argument("--stats-within-s", type=float, help="also require a stats message within this many seconds")
     p.add_argument("--unreachable-ok", action="store_true", help="pass when the router cannot be reached (liveness)")
@@ -130,6 +132,23 @@ def build_parser() -> argparse.ArgumentParser:
                    "the role's --agent: look under its run id <run>.<ID>")
     p.add_argument("--connect-timeout-s", type=float, default=3.0, help="how long to wait for the router")
     return p
+
+
+def resolve_id(ident: str, host: str, client_config: str | None) -> str:
+    """``--id`` with its placeholders replaced: ``{hostname}`` by ``host``, ``{ordinal}`` by the
+    host name's last ``-<n>`` (a StatefulSet pod's index: zenrl-actor-3 -> 3, the secured actor's
+    login actor-<i>), ``{login}`` by the user name of ``client_config`` (a secured actor's id is
+    its login's, also where the login is not the pod's ordinal)."""
+    ident = ident.replace("{hostname}", host).replace("{ordinal}", host.rsplit("-", 1)[-1])
+    if "{login}" in ident:
+        from zenrl.identity import client_login
+
+        user, _ = client_login(client_config)
+        if not user:
+            raise ConfigError(f"--id {ident!r} names {{login}}, and transport.client_config "
+                              f"{client_config!r} holds no login")
+        ident = ident.replace("{login}", user)
+    return ident
 
 
 def main(argv: list[str] | None = None) -> int:

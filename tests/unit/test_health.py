@@ -105,3 +105,24 @@ def test_the_league_service_is_probed_on_the_leagues_own_run_id(monkeypatch, cap
     rc, out = _probe(monkeypatch, capsys, tmp_path, ["zenrl/lg/alive/league/league"],
                      "--role", "league", "--id", "league")
     assert (rc, out["run_id"], out["ids"]) == (0, "lg", ["league"]), out
+
+
+def test_id_placeholders(tmp_path):
+    """--id placeholders: {hostname}, {ordinal} (a StatefulSet pod's index) and {login} (the
+    user name of the client config: a secured actor's id, which need not be its pod's ordinal)."""
+    import json
+
+    from zenrl.common.errors import ConfigError
+    from zenrl.health import resolve_id
+
+    login = tmp_path / "client.json5"
+    login.write_text(json.dumps({"mode": "client", "transport": {"auth": {"usrpwd": {"user": "actor-14",
+                                                                                  "password": "x"}}}}))
+    assert resolve_id("actor-{hostname}-7", "zenrl-actor-3", None) == "actor-zenrl-actor-3-7"
+    assert resolve_id("actor-{ordinal}", "zenrl-actor-exploiter-1", None) == "actor-1"
+    assert resolve_id("{login}", "zenrl-actor-exploiter-1", str(login)) == "actor-14"
+    bare = tmp_path / "bare.json5"
+    bare.write_text(json.dumps({"mode": "client"}))
+    for cfg in (None, str(bare)):
+        with pytest.raises(ConfigError, match="holds no login"):
+            resolve_id("{login}", "h", cfg)

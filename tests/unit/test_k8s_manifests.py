@@ -79,7 +79,7 @@ def container(docs: list[dict], workload: str, name: str) -> dict:
     return next(c for c in spec["containers"] if c["name"] == name)
 
 
-OVERLAYS = ("plain", "secured", "gpu", "sharded-replay", "league")
+OVERLAYS = ("plain", "secured", "gpu", "sharded-replay", "league", "league-secured")
 ROLES = {"zenrl-replay": "replay", "zenrl-learner": "learner", "zenrl-actor": "actor", "zenrl-evaluator": "evaluator"}
 
 
@@ -147,7 +147,7 @@ def test_components_probes_and_requests(tree, overlay):
     proto, hostport = env["ZENRL_ROUTER"].split("/", 1)
     host, port = hostport.rsplit(":", 1)
     assert host in by_kind(docs, "Service") and by_kind(docs, "Service")[host]["spec"]["ports"][0]["port"] == int(port)
-    assert proto == ("tls" if overlay == "secured" else "tcp")
+    assert proto == ("tls" if overlay in ("secured", "league-secured") else "tcp")
 
 
 def _generated(docs: list[dict], base: str) -> str:
@@ -191,12 +191,12 @@ def test_secured_each_pod_gets_only_its_own_credentials(tree, tmp_path):
         env = {e["name"]: e for e in init["env"]}
         assert env["POD_INDEX"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.labels['apps.kubernetes.io/pod-index']"
         # the init container's command, run here on the generated Secret's file for pod index 2
-        code = init["command"][2].replace(f"{imounts[logins_vol]}/", str(tree / "overlays/secured/files") + "/")
+        code = init["command"][2].replace(f"{imounts[logins_vol]}/", str(tree / "components/secured/files") + "/")
         code = code.replace(f"{imounts[vol]}/", str(tmp_path) + "/")
         subprocess.run([sys.executable, "-c", code], check=True, env={**os.environ, "POD_INDEX": "2"}, timeout=60)
         out = tmp_path / Path(cfg_path).name
         auth = config_section(str(out), "transport/auth/usrpwd")
-        users = read_users(tree / "overlays/secured/files/users.txt")
+        users = read_users(tree / "components/secured/files/users.txt")
         assert auth["user"] == "actor-2" and users["actor-2"] == auth["password"] and not is_dev_password(auth["password"])
         r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "POD_INDEX": "3"}, capture_output=True,
                            text=True, timeout=60)
@@ -270,7 +270,8 @@ def _mounted_file(docs: list[dict], spec: dict, c: dict, path: str, into: Path) 
     return str(out)
 
 
-def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
+@pytest.mark.parametrize("overlay", ["league", "league-secured"])
+def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path, overlay):
     """The league overlay: the league service on the league's run id, and for each agent of the
     config's league.agents its replay, learner and actors (the evaluator: main's), each process
     and each of its probes with --agent <id>, so that both resolve the same run id <run>.<id>,
@@ -281,7 +282,7 @@ def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
     from zenrl.health import build_parser as probe_parser
     from zenrl.launcher.league_run import agent_config
 
-    docs = render(tree, "league")
+    docs = render(tree, overlay)
     cfg_text = by_kind(docs, "ConfigMap")[_generated(docs, "zenrl-config")]["data"]["zenrl.yaml"]
     assert cfg_text == (ROOT / "configs/cluster_league.yaml").read_text(), \
         "overlays/league/zenrl.yaml is not a copy of configs/cluster_league.yaml"
@@ -347,6 +348,60 @@ def test_league_overlay_runs_each_agent_under_its_own_run_id(tree, tmp_path):
     assert exporter_actors == 5, "the exporter expects another count of actors than main's"
 
 
+def test_league_secured_each_pod_gets_only_its_own_credentials(tree, tmp_path):
+    """overlays/league-secured: every zenrl container of the league has a login, its role's own
+    (the league's, the monitor's for the exporter, each agent's replay and learner theirs); actor
+    pods copy out one actor login each, main's pod i actor-<i>, the exploiter's pod i
+    actor-<N-1-i>, so that the two agents' actors never share one while the pool holds them all;
+    no actor container mounts the Secret of every login; actor probes ask for their login's id."""
+    from zenrl.common.transport import config_section
+    from zenrl.health import build_parser as probe_parser
+    from zenrl.identity import read_users
+
+    docs = render(tree, "league-secured")
+    secrets = by_kind(docs, "Secret")
+    users = read_users(tree / "components/secured/files/users.txt")
+    n_logins = sum(1 for u in users if re.fullmatch(r"actor-\d+", u))
+    logins: dict[str, list[str]] = {}
+    for name, w in workloads(docs).items():
+        spec = w["spec"]["template"]["spec"]
+        for c in spec["containers"]:
+            if c["image"].split(":")[0] != "zenrl" or c["args"][0] == "router":
+                continue
+            role = c["args"][0]
+            env = {e["name"]: e.get("value") for e in c.get("env", [])}
+            cfg_path = env.get("ZENRL__TRANSPORT__CLIENT_CONFIG")
+            assert cfg_path, f"{name}/{c['name']} has no login"
+            mounts = {m["mountPath"]: m["name"] for m in c["volumeMounts"]}
+            vol = next(v for v in spec["volumes"] if v["name"] == mounts[str(Path(cfg_path).parent)])
+            used = {v["secret"]["secretName"] for v in spec["volumes"] if "secret" in v}
+            if role != "actor":
+                own = "zenrl-client-" + {"exporter": "monitor"}.get(role, role)
+                assert vol["secret"]["secretName"] == _generated(docs, own), (name, vol)
+                assert used == {_generated(docs, "zenrl-ca"), _generated(docs, own)}, (name, used)
+                assert Path(cfg_path).name in secrets[_generated(docs, own)]["data"], name
+                continue
+            assert vol["emptyDir"]["medium"] == "Memory" and "zenrl-actor-logins" not in str(c["volumeMounts"])
+            (init,) = spec["initContainers"]
+            imounts = {m["name"]: m["mountPath"] for m in init["volumeMounts"]}
+            logins_vol = next(v["name"] for v in spec["volumes"]
+                              if v.get("secret", {}).get("secretName") == _generated(docs, "zenrl-actor-logins"))
+            code = init["command"][2].replace(f"{imounts[logins_vol]}/", str(tree / "components/secured/files") + "/")
+            for i in range(2):  # the init container's command, run here for pods 0 and 1
+                out = tmp_path / name / str(i)
+                out.mkdir(parents=True)
+                run = code.replace(f"{imounts[vol['name']]}/", f"{out}/")
+                subprocess.run([sys.executable, "-c", run], check=True, env={**os.environ, "POD_INDEX": str(i)},
+                               timeout=60)
+                auth = config_section(str(out / Path(cfg_path).name), "transport/auth/usrpwd")
+                assert users[auth["user"]] == auth["password"], (name, i)
+                logins.setdefault(name, []).append(auth["user"])
+            for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+                assert probe_parser().parse_args(c[probe]["exec"]["command"][3:]).ident == "{login}", (name, probe)
+    assert logins == {"zenrl-actor": ["actor-0", "actor-1"],
+                      "zenrl-actor-exploiter": [f"actor-{n_logins - 1}", f"actor-{n_logins - 2}"]}, logins
+
+
 def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):
     docs = render(tree, "gpu")
     c = container(docs, "zenrl-learner", "learner")
@@ -364,7 +419,7 @@ def test_no_secret_in_the_repository_manifests():
         for doc in (yaml.safe_load_all(text) if f.suffix == ".yaml" else ()):
             assert not (doc and doc.get("kind") == "Secret"), f"{f} holds a Secret"
         assert "PRIVATE KEY" not in text and "dev-password" not in text, f"{f} holds a key or a password"
-    gitignore = (K8S / "overlays" / "secured" / ".gitignore").read_text().split()
+    gitignore = (K8S / "components" / "secured" / ".gitignore").read_text().split()
     assert "files/" in gitignore
     tracked = subprocess.run(["git", "ls-files", str(K8S)], cwd=ROOT, capture_output=True, text=True).stdout.split()
     assert not [t for t in tracked if "/files/" in t], "generated secret inputs are tracked"
@@ -372,7 +427,7 @@ def test_no_secret_in_the_repository_manifests():
 
 def test_prepare_script_names_the_router_service(tree):
     out = subprocess.run(["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in",
-                          str(tree / "overlays/secured/files/router.pem")], capture_output=True, text=True, timeout=30)
+                          str(tree / "components/secured/files/router.pem")], capture_output=True, text=True, timeout=30)
     san = out.stdout
     for name in ("DNS:zenrl-router", "DNS:zenrl-router.zenrl.svc", "DNS:zenrl-router.zenrl.svc.cluster.local"):
         assert name in san, (name, san, shlex.join(out.args))

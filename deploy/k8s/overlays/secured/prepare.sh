@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Makes files/ for the secured overlay: the inputs of its secretGenerator and configMapGenerator.
+# Makes deploy/k8s/components/secured/files/ for the secured overlays (overlays/secured,
+# overlays/league-secured): the inputs of the component's secretGenerator and configMapGenerator.
 #
 #   deploy/k8s/overlays/secured/prepare.sh [NAMESPACE] [ACTORS]
 #
@@ -18,7 +19,7 @@ set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 zenoh="$(cd "$here/../../../zenoh" && pwd)"
 ns="${1:-default}"
-out="$here/files"
+out="$(cd "$here/../../components/secured" && pwd)/files"
 mkdir -p "$out"
 
 if [[ ! -f "$out/ca.pem" ]]; then
