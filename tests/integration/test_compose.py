@@ -962,6 +962,23 @@ def test_docker_image_runs_zenrl_run_from_any_directory(docker_images, workdir):
     assert r.returncode == 0 and "max_updates 200 reached" in r.stdout + r.stderr, docker_output(r)
 
 
+class LeagueStats:
+    """The league service's newest stats values (``stats/league/league``), merged as they come."""
+
+    def __init__(self, node: Any, run_id: str) -> None:
+        from zenrl.common import protocol as P
+
+        self._P = P
+        self._latest = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
+        self.seen: dict[str, Any] = {}
+
+    def at_least(self, key: str, want: int) -> bool:
+        raw = self._latest.take()
+        if raw is not None:
+            self.seen.update(self._P.Stats.decode(raw).values)
+        return int(self.seen.get(key, 0)) >= want
+
+
 def _small_league_config(tmp_path: Path, exploiter_reset_s: float) -> Path:
     """configs/cluster_league.yaml made quick for a test: matches of at most 40 steps, a small
     network and replay, league stats every 0.5 s; a file the containers' user can read."""
@@ -988,7 +1005,6 @@ def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_p
     (--agent); when the league starts the exploiter's next generation, its replay, learner and
     actor containers exit with status 75 by themselves, the engine's restart policy starts them
     again, and the new generation plays matches; the main agent's services are not restarted."""
-    from zenrl.common import protocol as P
     from zenrl.common.transport import Node
 
     cfg_path = _small_league_config(tmp_path, exploiter_reset_s=45)
@@ -1001,15 +1017,8 @@ def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_p
     try:
         cluster.compose("up", "-d", timeout=900)
         with Node(cluster.endpoint, 60.0) as node:
-            stats = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
-            seen: dict[str, Any] = {}
-
-            def league(key: str, want: int) -> bool:
-                raw = stats.take()
-                if raw is not None:
-                    seen.update(P.Stats.decode(raw).values)
-                return int(seen.get(key, 0)) >= want
-
+            stats = LeagueStats(node, run_id)
+            league = stats.at_least
             wait_for(lambda: league("since_games/main", 3), 300, "main's first league matches", cluster, "actor")
             wait_for(lambda: league("generation/exploiter", 1), 300, "the exploiter's second generation", cluster,
                      "league")
@@ -1017,7 +1026,7 @@ def test_docker_league_cluster_resets_its_exploiter(docker_images, run_id, tmp_p
                 wait_for(lambda svc=svc: restarts(svc) >= 1, 180, f"{svc} restarted by the engine", cluster, svc)
                 assert "to be started afresh (exit status 75)" in cluster.logs(svc), cluster.logs(svc)[-3000:]
             # the new generation plays (its matches since the reset), its learner started fresh
-            seen.pop("since_games/exploiter", None)  # (the count of the old generation)
+            stats.seen.pop("since_games/exploiter", None)  # (the count of the old generation)
             wait_for(lambda: league("since_games/exploiter", 3), 300, "matches of the exploiter's new generation",
                      cluster, "actor-exploiter")
             assert "resumed from" not in cluster.logs("learner-exploiter"), cluster.logs("learner-exploiter")[-3000:]
@@ -1034,7 +1043,6 @@ def test_docker_secure_league_cluster(docker_images, run_id, tmp_path):
     actors take distinct actor logins from the one pool (two identities for one actor of each);
     both agents' matches reach the league and both learners train; `league-status` answers with
     the monitor login."""
-    from zenrl.common import protocol as P
     from zenrl.common.transport import Node
 
     if shutil.which("openssl") is None:
@@ -1050,15 +1058,7 @@ def test_docker_secure_league_cluster(docker_images, run_id, tmp_path):
         nodes += agents.values()
         node = Node(cluster.endpoint, 60.0, config_file=login)
         nodes.append(node)
-        stats = node.subscribe_latest(P.Keys(run_id).stats("league", "league"))
-        seen: dict[str, Any] = {}
-
-        def league(key: str, want: int) -> bool:
-            raw = stats.take()
-            if raw is not None:
-                seen.update(P.Stats.decode(raw).values)
-            return int(seen.get(key, 0)) >= want
-
+        league = LeagueStats(node, run_id).at_least
         for agent, svc in (("main", "actor"), ("exploiter", "actor-exploiter")):
             wait_for(lambda a=agent: league(f"since_games/{a}", 3), 300, f"{agent}'s league matches", cluster, svc)
         for agent, svc in (("main", "learner"), ("exploiter", "learner-exploiter")):
