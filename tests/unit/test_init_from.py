@@ -43,14 +43,18 @@ def test_from_a_checkpoint_takes_its_online_network(tmp_path):
     assert b.updates == 0  # a fresh learner: counters and optimizer start anew
 
 
-def test_from_the_shipped_export_plays_as_the_exported_policy():
-    cfg = load_config(str(ROOT / "configs" / "burgerwar_league_pfsp.yaml"), [], environ={})
+@pytest.mark.parametrize("model,config", [("burgerwar_league.pt", "burgerwar_league.yaml"),
+                                          ("burgerwar_pfsp.pt", "burgerwar_league_pfsp.yaml")])
+def test_from_the_shipped_export_plays_as_the_exported_policy(model, config):
+    """A shipped export as the learner's start, in the env of the config it was trained with."""
+    shipped = ROOT / "models" / model
+    cfg = load_config(str(ROOT / "configs" / config), [], environ={})
     env = make_env(cfg.env)
     try:
         spec = obs_spec(env.observation_space)
         learner = _learner(cfg, spec, int(env.action_space.n))
-        learner.load_initial(initial_q_weights(SHIPPED, exported=True), str(SHIPPED))
-        player = ExportedPlayer(SHIPPED)
+        learner.load_initial(initial_q_weights(shipped, exported=True), str(shipped))
+        player = ExportedPlayer(shipped)
         obs, _ = env.reset(seed=123)
         rng = np.random.default_rng(0)
         agree = 0
