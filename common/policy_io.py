@@ -210,9 +210,11 @@ class ExportedPlayer:
         return seat
 
     def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
-        """:class:`ZenrlError` naming the first input or the action count that differs from the env's."""
+        """:class:`ZenrlError` naming the first input or the action count that differs from the env's.
+        The env may give more observation keys than the policy reads (e.g. ``enemy_seen`` to a
+        policy trained without it): it reads its own keys only."""
         spaces = observation_space.spaces if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
-        if sorted(spaces) != sorted(self.keys):
+        if not set(self.keys) <= set(spaces):
             raise ZenrlError(f"{self.name}: exported for observation keys {sorted(self.keys)}, the env has {sorted(spaces)}")
         for k, want in self.meta["inputs"].items():
             sp = spaces[k]

@@ -42,3 +42,19 @@ def test_shipped_model_evaluates_and_wins(name, tmp_path):
     assert row["opponent"] == opponent and row["episodes"] == matches
     assert row["wins"] >= need, f"{name} won {row['wins']}/{matches} against {opponent}: {row}"
     assert {e["side"] for e in json.loads(out.read_text())["results"]} == {"red", "blue"}
+
+
+def test_shipped_models_of_different_observations_meet_in_a_round_robin(tmp_path):
+    """burgerwar_pfsp.pt observes `enemy_seen` (the lidar enemy detector), burgerwar_league.pt
+    does not: in the env of the first (which gives the key) both play, each reading its own
+    observation keys. In the env of the second the first cannot play, and the error says why."""
+    pfsp, league = str(ROOT / "models" / "burgerwar_pfsp.pt"), str(ROOT / "models" / "burgerwar_league.pt")
+    cmd = [sys.executable, "-m", "zenrl.cli", "evaluate", "--exported", "--episodes", "2", "--workers", "1",
+           "--seed", "1000000", "--no-progress", "--env-kwargs", '{"match_time": 20}', "--round-robin"]
+    r = subprocess.run([*cmd, f"{pfsp},{league}"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    (pair,) = summary["pairs"]
+    assert pair["matches"] == 2 and pair["a_wins"] + pair["draws"] + pair["b_wins"] == 2, summary
+    r = subprocess.run([*cmd, f"{league},{pfsp}"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert r.returncode != 0 and "enemy_seen" in r.stderr, r.stderr[-3000:]
