@@ -20,6 +20,11 @@ here="$(cd "$(dirname "$0")" && pwd)"
 zenoh="$(cd "$here/../../../zenoh" && pwd)"
 ns="${1:-default}"
 out="$(cd "$here/../../components/secured" && pwd)/files"
+# files/ used to be made beside this script: a set made there is moved, not replaced (its
+# passwords may be in use by a running cluster)
+if [[ -d "$here/files" && ! -e "$out" ]]; then
+  mv "$here/files" "$out"
+fi
 mkdir -p "$out"
 
 if [[ ! -f "$out/ca.pem" ]]; then
