@@ -260,7 +260,8 @@ def detect_circle(ranges: np.ndarray, pose: Sequence[float], circle: Sequence[fl
     circle's own range there (within ``tol``) and inside the sensor's range, so it is not
     hidden by a wall, a box, or distance. Its position is taken from the scan as a detector on
     the real robot would: the nearest such beam's reading plus the circle's radius, along that
-    beam; (0, 0, 0) when not seen. No knowledge beyond the scan and the robot's footprint.
+    beam; (0, 0, 0) when not seen. The true circle only picks the beams to look at (a detector
+    that finds the robot-sized bump in the scan); whether it is seen, and where, is the scan's.
     """
     x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
     ox, oy = x + LIDAR_X * math.cos(yaw), y + LIDAR_X * math.sin(yaw)
