@@ -243,7 +243,8 @@ class LeagueConfig(_Section):
     agents: dict[str, LeagueAgentConfig] = Field(default_factory=_default_agents, description="The learning agents by player id, each {role: main|exploiter, num_actors, envs_per_actor, overrides: {'section.field': value}}: exactly one with role main, any number of exploiters.")
     bots: list[str] = Field(default_factory=lambda: ["cheese", "teriyaki", "clubhouse", "waypoint"], description="Scripted bots that are players of the league (the env's opponent names).")
     selfplay_share: float = Field(0.35, ge=0, le=1, description="Main agent: share of its matches against its own current weights; the rest is PFSP over the frozen players.")
-    bot_share: float = Field(0.0, ge=0, le=1, description="Main agent: share of its matches by PFSP over the scripted bots alone (on top of their place in the PFSP over every frozen player), so that the bots it beats are never all but dropped and forgotten; selfplay_share + bot_share <= 1.")
+    bot_share: float = Field(0.0, ge=0, le=1, description="Main agent: share of its matches by PFSP over the scripted bots alone (on top of their place in the PFSP over every frozen player), so that the bots it beats are never all but dropped and forgotten; selfplay_share + bot_share + exploiter_share <= 1.")
+    exploiter_share: float = Field(0.0, ge=0, le=1, description="Main agent: share of its matches against the exploiters' current (live) weights, split evenly between the exploiters available, as AlphaStar's main agents also play the main exploiters: main then trains on the very matches an exploiter is winning, not only on its snapshots once it is reset; selfplay_share + bot_share + exploiter_share <= 1.")
     pfsp_weighting: Literal["hard", "var"] = Field("hard", description="PFSP weighting of an opponent the main agent beats with probability x: hard (1-x)^p, var x(1-x).")
     pfsp_p: float = Field(2.0, gt=0, le=100, description="Exponent p of the hard weighting.")
     prior_win_rate: float = Field(0.5, ge=0, le=1, description="Win rate assumed for a pair before it has played (a prior worth prior_games matches).")
@@ -287,8 +288,9 @@ class LeagueConfig(_Section):
                 raise ValueError(f"league player id {i!r} must be 1-32 characters of [A-Za-z0-9_-], starting with a letter")
         if len(set(ids)) != len(ids):
             raise ValueError(f"league.agents and league.bots share a player id: {ids}")
-        if self.selfplay_share + self.bot_share > 1.0 + 1e-9:
-            raise ValueError(f"league.selfplay_share + league.bot_share = {self.selfplay_share} + {self.bot_share} exceeds 1")
+        if self.selfplay_share + self.bot_share + self.exploiter_share > 1.0 + 1e-9:
+            raise ValueError(f"league.selfplay_share + league.bot_share + league.exploiter_share = {self.selfplay_share} "
+                             f"+ {self.bot_share} + {self.exploiter_share} exceeds 1")
         if self.ticket_burst < self.prefetch:
             raise ValueError(f"league.ticket_burst {self.ticket_burst} is below league.prefetch {self.prefetch}: "
                              "an actor's first assignments would be refused")

@@ -14,8 +14,9 @@ After AlphaStar (Vinyals et al., Nature 2019, and its published pseudocode):
   probability proportional to ``f(x)``, ``x`` = P[a beats b] = (wins + draws / 2 + prior_rate *
   prior_games) / (games + prior_games) over the decayed counts; ``f_hard(x) = (1 - x) ** p``,
   ``f_var(x) = x (1 - x)``; all-zero weights fall back to uniform;
-* **roles**: the main agent plays itself (``selfplay_share``) or PFSP over every frozen player
-  (bots and snapshots); an exploiter plays only the current main agent;
+* **roles**: the main agent plays itself (``selfplay_share``), the exploiters' live weights
+  (``exploiter_share``) or PFSP over every frozen player (bots and snapshots); an exploiter
+  plays only the current main agent;
 * **snapshots and resets**: a learning agent's current weights join as a frozen snapshot every
   ``snapshot_interval_s``, or sooner (after ``min_snapshot_interval_s``) once its win rate since
   its last snapshot passes ``snapshot_win_rate`` over at least ``min_games``; an exploiter is
@@ -195,6 +196,9 @@ class League:
         self._served_at: dict[str, float] = {}
         #: per learning agent after a reset: weights with ``updates`` at or above this come from the old learner
         self._stale_updates: dict[str, int] = {}
+        #: per reset learning agent: added to its learner's versions, so that a version the league
+        #: serves never repeats one of an earlier generation (actors cache weights by id and version)
+        self._version_offset: dict[str, int] = {}
         self.results_total = 0
         for b in cfg.bots:
             self.players[b] = Player(b, BOT, BOT, now)
@@ -237,10 +241,10 @@ class League:
 
     def distribution(self, player: str) -> dict[str, float]:
         """``{opponent: probability}`` of ``player``'s next opponent, over the players
-        available now. Main: ``selfplay_share`` itself, ``bot_share`` PFSP over the bots alone, the
-        rest PFSP over every frozen player
-        (all of it to whichever side is the only one available). Exploiter: the current main
-        agent. An empty dict when nobody can be played (then the caller falls back to a bot).
+        available now. Main: ``selfplay_share`` itself, ``bot_share`` PFSP over the bots alone,
+        ``exploiter_share`` the exploiters' live weights (evenly), the rest PFSP over every frozen
+        player (a share whose players are not available goes to the others in proportion; all of
+        it to whichever side is the only one available). Exploiter: the current main agent. An empty dict when nobody can be played (then the caller falls back to a bot).
         ``KeyError`` for a player that is not a learning agent."""
         p = self.players[player]
         if p.kind != LEARNER:
@@ -249,13 +253,22 @@ class League:
             return {self.main_id: 1.0} if self.available(self.main_id) else {}
         frozen = [o for o in self.frozen() if self.available(o)]
         share = self.cfg.selfplay_share if self.available(player) else 0.0
+        live = [o for o, q in self.players.items()
+                if q.kind == LEARNER and q.role == "exploiter" and self.available(o)]
+        ex_share = self.cfg.exploiter_share if live else 0.0
         if not frozen:
-            return {player: 1.0} if share > 0 else {}
+            out = {o: ex_share / len(live) for o in live} if ex_share > 0 else {}
+            if share > 0:
+                out[player] = share
+            total = sum(out.values())
+            return {o: q / total for o, q in out.items()} if total > 0 else {}
         bots = [o for o in frozen if self.players[o].kind == BOT]
         bot_share = self.cfg.bot_share if bots else 0.0
-        out = {o: (1.0 - share - bot_share) * q for o, q in self.pfsp(player, frozen).items()}
+        out = {o: (1.0 - share - bot_share - ex_share) * q for o, q in self.pfsp(player, frozen).items()}
         for o, q in (self.pfsp(player, bots).items() if bot_share > 0 else ()):
             out[o] += bot_share * q
+        for o in live if ex_share > 0 else ():
+            out[o] = ex_share / len(live)
         if share > 0:
             out[player] = out.get(player, 0.0) + share
         return out
@@ -307,6 +320,8 @@ class League:
         copy follows at most every ``live_refresh_s`` (at once when none is served)."""
         if player not in self.players or self.players[player].kind != LEARNER:
             return False
+        if self._version_offset.get(player):
+            w = LearnerWeights(w.version + self._version_offset[player], w.updates, w.arch, w.params)
         stale = self._stale_updates.get(player)
         old = self.live.get(player)
         if stale is not None:
@@ -389,6 +404,7 @@ class League:
         self.served.pop(player, None)
         if old is not None:
             self._stale_updates[player] = old.updates
+            self._version_offset[player] = old.version + 1
         p.generation += 1
         p.reset_at = p.last_snapshot_at = now
         p.version, p.updates = -1, 0
@@ -425,7 +441,7 @@ class League:
         ``now``: when it is saved (a restored league's timers skip the time it was down)."""
         return {"format": STATE_FORMAT, "saved_at": now, "players": [p.to_dict() for p in self.players.values()],
                 "payoff": self.payoff.to_state(), "since": self.since, "results_total": self.results_total,
-                "stale_updates": self._stale_updates}
+                "stale_updates": self._stale_updates, "version_offset": self._version_offset}
 
     @classmethod
     def from_state(cls, cfg: LeagueConfig, state: Mapping[str, Any], weights: Mapping[str, LearnerWeights],
@@ -458,6 +474,7 @@ class League:
         lg.since = {k: {o: [int(x) for x in c] for o, c in v.items()} for k, v in state.get("since", {}).items()}
         lg.results_total = int(state.get("results_total", 0))
         lg._stale_updates = {k: int(v) for k, v in state.get("stale_updates", {}).items()}
+        lg._version_offset = {k: int(v) for k, v in state.get("version_offset", {}).items()}
         lg.weights = {k: v for k, v in weights.items() if k in lg.players}
         gone = {a for pair in lg.payoff.counts for a in pair} - set(lg.players)  # rows of players that left
         for pid in gone:

@@ -105,6 +105,67 @@ def test_bot_share_keeps_beaten_bots_in_the_mix():
         cfg(bot_share=0.7)  # 0.35 + 0.7 > 1
 
 
+def test_exploiter_share_gives_main_matches_against_the_live_exploiters():
+    agents = {"main": {"role": "main"}, "ex1": {"role": "exploiter"}, "ex2": {"role": "exploiter"}}
+    lg = League(cfg(bot_share=0.2, exploiter_share=0.3, agents=agents), now=0.0)
+    lg.hear_weights("main", weights(5), now=1.0)
+    for o in (1, 1, 1, -1):
+        lg.record("main", "cheese", o)
+    # no exploiter heard yet: its share goes to the PFSP over the frozen players (x: cheese 0.7,
+    # teriyaki 0.5 -> hard weights 0.09, 0.25), as without the option
+    pf = np.array([0.09, 0.25]) / 0.34
+    d = lg.distribution("main")
+    assert set(d) == {"cheese", "teriyaki", "main"}
+    assert d["cheese"] == pytest.approx(0.45 * pf[0] + 0.2 * pf[0])
+    assert d["main"] == pytest.approx(0.35)
+    # one exploiter heard: all 0.3 to it, the PFSP rest shrinks to 1 - 0.35 - 0.2 - 0.3
+    lg.hear_weights("ex1", weights(2), now=2.0)
+    d = lg.distribution("main")
+    assert d["ex1"] == pytest.approx(0.3)
+    assert d["cheese"] == pytest.approx(0.15 * pf[0] + 0.2 * pf[0])
+    assert d["teriyaki"] == pytest.approx(0.15 * pf[1] + 0.2 * pf[1])
+    assert sum(d.values()) == pytest.approx(1.0)
+    # two: split evenly, whatever main's results against them
+    lg.hear_weights("ex2", weights(3), now=2.0)
+    for _ in range(5):
+        lg.record("main", "ex1", 1)
+    d = lg.distribution("main")
+    assert d["ex1"] == pytest.approx(0.15) and d["ex2"] == pytest.approx(0.15)
+    assert sum(d.values()) == pytest.approx(1.0)
+    # an exploiter still plays only main
+    assert lg.distribution("ex1") == {"main": 1.0}
+    # nothing frozen available (no bots): self-play and the exploiters in proportion
+    lg2 = League(cfg(bots=[], exploiter_share=0.3, agents=agents), now=0.0)
+    lg2.hear_weights("main", weights(1), now=0.0)
+    lg2.hear_weights("ex1", weights(1), now=0.0)
+    assert lg2.distribution("main") == pytest.approx({"main": 0.35 / 0.65, "ex1": 0.3 / 0.65})
+    with pytest.raises(ValueError, match="exploiter_share"):
+        cfg(bot_share=0.4, exploiter_share=0.3)  # 0.35 + 0.4 + 0.3 > 1
+
+
+def test_a_reset_exploiters_versions_never_repeat_an_earlier_generations():
+    """Actors cache a live player's weights by (id, version): a fresh learner counts its
+    versions from the start again, so the league serves them above the old generation's."""
+    lg = League(cfg(exploiter_share=0.2), now=0.0)
+    lg.hear_weights("main", weights(1), now=0.0)
+    lg.hear_weights("exploiter", weights(7, updates=700), now=0.0)
+    assert lg.weights_of("exploiter").version == 7
+    lg.reset("exploiter", now=1.0, reason="timer")
+    assert lg.hear_weights("exploiter", weights(7, updates=20), now=2.0)  # the new learner's version 7
+    w = lg.weights_of("exploiter")
+    assert w.version == 7 + 8 and w.updates == 20
+    assert lg.players["exploiter"].version == 15
+    # kept across a restart of the league, and a second reset counts on from there
+    back = League.from_state(lg.cfg, json.loads(json.dumps(lg.to_state())), dict(lg.weights), now=3.0)
+    back.hear_weights("exploiter", weights(9, updates=40), now=3.0)
+    assert back.weights_of("exploiter").version == 9 + 8
+    back.reset("exploiter", now=4.0, reason="timer")
+    back.hear_weights("exploiter", weights(1, updates=0), now=5.0)
+    assert back.weights_of("exploiter").version == 1 + 18
+    # main, never reset, keeps its learner's own versions
+    assert back.hear_weights("main", weights(3), now=5.0) and back.live["main"].version == 3
+
+
 def test_exploiter_plays_only_the_current_main():
     lg = League(cfg(), now=0.0)
     assert lg.distribution("exploiter") == {}
