@@ -46,15 +46,19 @@ def test_shipped_model_evaluates_and_wins(name, tmp_path):
 
 def test_shipped_models_of_different_observations_meet_in_a_round_robin(tmp_path):
     """burgerwar_pfsp.pt observes `enemy_seen` (the lidar enemy detector), burgerwar_league.pt
-    does not: in the env of the first (which gives the key) both play, each reading its own
-    observation keys. In the env of the second the first cannot play, and the error says why."""
+    does not: both play in the env of the first, which gives the key (each reads its own
+    observation keys), in whichever order they are listed. An env without the key, forced by
+    --env-kwargs, suits neither file's env for both, and the error says why."""
     pfsp, league = str(ROOT / "models" / "burgerwar_pfsp.pt"), str(ROOT / "models" / "burgerwar_league.pt")
     cmd = [sys.executable, "-m", "zenrl.cli", "evaluate", "--exported", "--episodes", "2", "--workers", "1",
            "--seed", "1000000", "--no-progress", "--env-kwargs", '{"match_time": 20}', "--round-robin"]
-    r = subprocess.run([*cmd, f"{pfsp},{league}"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr[-3000:]
-    summary = json.loads(r.stdout.strip().splitlines()[-1])
-    (pair,) = summary["pairs"]
-    assert pair["matches"] == 2 and pair["a_wins"] + pair["draws"] + pair["b_wins"] == 2, summary
+    for players in (f"{pfsp},{league}", f"{league},{pfsp}"):
+        r = subprocess.run([*cmd, players], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr[-3000:]
+        summary = json.loads(r.stdout.strip().splitlines()[-1])
+        assert summary["env_from"] == "burgerwar_pfsp.pt", summary
+        (pair,) = summary["pairs"]
+        assert pair["matches"] == 2 and pair["a_wins"] + pair["draws"] + pair["b_wins"] == 2, summary
+    cmd[cmd.index('{"match_time": 20}')] = '{"match_time": 20, "enemy_detector": false}'
     r = subprocess.run([*cmd, f"{league},{pfsp}"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert r.returncode != 0 and "enemy_seen" in r.stderr, r.stderr[-3000:]

@@ -322,10 +322,13 @@ class PairResult:
 
 
 class RoundRobinRunner:
-    """Loads every policy of ``players`` once into one match env (made from the first policy's
-    env, with ``env_id`` / ``env_kwargs`` over it) and plays :class:`PairJob` matches. A policy
-    takes the env's agent seat and its opponent (a bot, or another policy through the env's
-    ``"policy"`` opponent) the other; each sees the match from its own side."""
+    """Loads every policy of ``players`` once into one match env and plays :class:`PairJob`
+    matches. The env is the first policy's (with ``env_id`` / ``env_kwargs`` over it) if every
+    policy can play in it, else the first policy env, in the players' order, that every policy
+    can play in (a policy reads its own observation keys, so an env that gives more serves it:
+    ``env_from`` names the file whose env it is). A policy takes the env's agent seat and its
+    opponent (a bot, or another policy through the env's ``"policy"`` opponent) the other; each
+    sees the match from its own side."""
 
     def __init__(self, players: Sequence[str], env_id: str | None, env_kwargs: Mapping[str, Any] | None,
                  allow_exported: bool = False) -> None:
@@ -333,20 +336,36 @@ class RoundRobinRunner:
         bots, files = split_opponents(players)
         if not files:
             raise ZenrlError("a round robin needs at least one policy file: scripted bots only play the opponent's seat")
-        first, self.env, _ = load_policy_env(files[0], env_id, env_kwargs, opponents=bots or ["idle"],
-                                             allow_exported=allow_exported)
-        if not is_match_env(self.env):
-            self.env.close()
-            raise ZenrlError(f"{files[0]}: a round robin needs a match env, not {self.env.spec.id if self.env.spec else self.env}")
-        self.policies = {files[0]: first}
-        try:
-            for f in files[1:]:
-                self.policies[f] = load_player(f, self.env.observation_space, self.env.action_space, allow_exported)
-        except ZenrlError:
-            self.env.close()
-            raise
+        first_error: ZenrlError | None = None
+        for source in files:
+            try:
+                self.env, self.policies = self._load(files, source, bots, env_id, env_kwargs, allow_exported)
+            except ZenrlError as e:
+                first_error = first_error or e
+                continue
+            self.env_from = source
+            break
+        else:
+            assert first_error is not None
+            raise first_error
         self.switch = _Switch()
         self.env.unwrapped.opponent_policy = self.switch
+
+    @staticmethod
+    def _load(files: Sequence[str], source: str, bots: Sequence[str], env_id: str | None,
+              env_kwargs: Mapping[str, Any] | None, allow_exported: bool) -> tuple[Any, dict[str, Any]]:
+        """The env of policy file ``source`` and every policy loaded for it (ZenrlError naming the
+        first that cannot play in it)."""
+        own, env, _ = load_policy_env(source, env_id, env_kwargs, opponents=bots or ["idle"], allow_exported=allow_exported)
+        try:
+            if not is_match_env(env):
+                raise ZenrlError(f"{source}: a round robin needs a match env, not {env.spec.id if env.spec else env}")
+            policies = {f: own if f == source else load_player(f, env.observation_space, env.action_space, allow_exported)
+                        for f in files}
+        except ZenrlError:
+            env.close()
+            raise
+        return env, policies
 
     def run(self, job: PairJob) -> PairResult:
         agent_side = "red" if job.red in self.policies else "blue"
@@ -473,6 +492,7 @@ def round_robin(players: Sequence[str], matches: int = 20, env_id: str | None = 
         anchor = next(p for p, n in player_names(players).items() if n == anchor)
     probe = RoundRobinRunner(players, env_id, env_kwargs, allow_exported)  # a mistake is one error here
     env_name = probe.env.spec.id if probe.env.spec else str(env_id)
+    env_from = probe.env_from
     jobs, skipped = round_robin_jobs(players, matches, seed)
     results: list[PairResult] = []
     bar = task = None
@@ -506,7 +526,7 @@ def round_robin(players: Sequence[str], matches: int = 20, env_id: str | None = 
             bar.stop()
     out = summarize_round_robin(players, results, anchor)
     names = player_names(players)
-    out.update({"env": env_name, "seed": seed, "matches_per_pair": matches,
+    out.update({"env": env_name, "env_from": names[env_from], "seed": seed, "matches_per_pair": matches,
                 "skipped": [[names[a], names[b]] for a, b in skipped],
                 "results": [asdict(r) for r in sorted(results, key=lambda r: r.index)]})
     return out
