@@ -400,6 +400,10 @@ def test_league_secured_each_pod_gets_only_its_own_credentials(tree, tmp_path):
                 assert probe_parser().parse_args(c[probe]["exec"]["command"][3:]).ident == "{login}", (name, probe)
     assert logins == {"zenrl-actor": ["actor-0", "actor-1"],
                       "zenrl-actor-exploiter": [f"actor-{n_logins - 1}", f"actor-{n_logins - 2}"]}, logins
+    # as shipped, the pool prepare.sh makes holds both agents' actor pods (beyond it the two
+    # ends of the pool meet and two pods would share a login)
+    replicas = {n: workloads(docs)[n]["spec"].get("replicas", 1) for n in logins}
+    assert sum(replicas.values()) <= n_logins, f"{replicas} actor pods, {n_logins} actor logins"
 
 
 def test_gpu_overlay_puts_the_learner_on_a_gpu(tree):
