@@ -244,8 +244,9 @@ class League:
         available now. Main: ``selfplay_share`` itself, ``bot_share`` PFSP over the bots alone,
         ``exploiter_share`` the exploiters' live weights (evenly), the rest PFSP over every frozen
         player (a share whose players are not available goes to the others in proportion; all of
-        it to whichever side is the only one available). Exploiter: the current main agent. An empty dict when nobody can be played (then the caller falls back to a bot).
-        ``KeyError`` for a player that is not a learning agent."""
+        it to whichever side is the only one available). Exploiter: the current main agent. An
+        empty dict when nobody can be played (then the caller falls back to a bot). ``KeyError``
+        for a player that is not a learning agent."""
         p = self.players[player]
         if p.kind != LEARNER:
             raise KeyError(player)
