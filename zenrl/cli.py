@@ -472,7 +472,18 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "export")
     tools.quiet_native_imports()
-    tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.member))
+    guard = (args.guard_radius, args.guard_angle) if args.guard else None
+    if tools.is_exported(args.checkpoint):
+        # an exported file can only be wrapped (its weights are a program's now)
+        if not args.exported:
+            raise ZenrlError(f"{args.checkpoint} is an exported policy (a TorchScript program, which runs code when "
+                             "loaded): pass --exported to wrap it with --guard, for a file you trust")
+        if guard is None or args.member or args.env or args.env_kwargs:
+            raise ZenrlError(f"{args.checkpoint} is already an exported policy: export takes checkpoints; of an "
+                             "exported file it only writes a guarded copy (--guard, without --member, --env, --env-kwargs)")
+        tools.print_json_line(tools.guard_exported(args.checkpoint, args.out, *guard))
+        return 0
+    tools.print_json_line(tools.export(args.checkpoint, args.out, args.env, _json_arg(args.env_kwargs), args.member, guard))
     return 0
 
 
@@ -671,6 +682,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--member", action="append", default=[], metavar="CHECKPOINT",
                    help="another checkpoint of the same env (repeatable): the file is a mixed policy, one member "
                         "(drawn uniformly) playing each match")
+    s.add_argument("--guard", action="store_true",
+                   help="a match policy with the enemy detector: turn to face the other robot, on the spot, whenever "
+                        "it is seen nearer than --guard-radius and more than --guard-angle off the heading (the "
+                        "robot's markers are on its sides and back); with --exported, --checkpoint may be an "
+                        "exported file to wrap")
+    s.add_argument("--guard-radius", type=float, default=1.2, metavar="M", help="the guard's reach in metres (1.2)")
+    s.add_argument("--guard-angle", type=float, default=30.0, metavar="DEG",
+                   help="the guard turns when the other robot is more than this many degrees off the heading (30)")
+    s.add_argument("--exported", action="store_true", help="with --guard: --checkpoint may be a `zenrl export` file "
+                                                           "(a program, which runs code when loaded: only one you trust)")
     s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("average", help="one checkpoint whose policy weights are the mean of several checkpoints' "

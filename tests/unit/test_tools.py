@@ -543,3 +543,138 @@ def test_an_exported_file_is_never_loaded_unless_asked_for(ckpts, tmp_path, monk
     assert cli_main(["evaluate", "--checkpoint", str(out), "--exported", "--episodes", "1", "--workers", "1",
                      "--no-progress"]) == 0
     assert loads, "--exported loads it"
+
+
+# --------------------------------------------------------------------------------------------
+# zenrl export --guard
+# --------------------------------------------------------------------------------------------
+GUARDED_MATCH = {**SHORT_MATCH, "enemy_detector": True, "action_set": "rich"}
+# the rich action table (v in {0.22, 0, -0.15} x w in {0, 0.5233, -0.5233, 1.4, -1.4}): the
+# fastest turns on the spot are (0, 1.4) and (0, -1.4), rows 5 + 3 and 5 + 4
+RICH_LEFT, RICH_RIGHT = 8, 9
+
+
+def _with_enemy(obs: dict, seen: float, x: float, y: float) -> dict:
+    return {**obs, "enemy_seen": np.array([seen, x, y], np.float32)}
+
+
+def _polar(r: float, deg: float) -> tuple[float, float]:
+    return r * np.cos(np.radians(deg)), r * np.sin(np.radians(deg))
+
+
+@pytest.fixture(scope="module")
+def guarded_ckpt(tmp_path_factory):
+    return make_checkpoint(tmp_path_factory.mktemp("guard"), BW, GUARDED_MATCH, seed=3)
+
+
+def test_the_guard_turns_towards_a_near_robot_off_the_heading_and_else_lets_the_policy_act(guarded_ckpt, tmp_path):
+    """Expected actions worked out by hand: the other robot seen nearer than 1.2 m and more than 30
+    degrees off the heading -> the fastest turn on the spot towards it (left for y > 0, else right);
+    anything else (ahead, far, unseen) -> the checkpoint's own greedy action."""
+    out = tmp_path / "guarded.pt"
+    meta = tools.export(str(guarded_ckpt), str(out), guard=(1.2, 30.0))
+    assert meta["guard"] == {"radius_m": 1.2, "angle_deg": 30.0, "turn_left": RICH_LEFT, "turn_right": RICH_RIGHT}
+    env = make_env(tools.env_config_for(read_checkpoint(guarded_ckpt).run_config()))
+    policy = load_policy(guarded_ckpt, env.observation_space, env.action_space)
+    base = _observations(env, 12, seed=4)
+    env.close()
+    player = tools.ExportedPlayer(out)
+    cases = [  # (seen, (x, y)) -> expected: "L", "R" or None (the policy's own)
+        (1.0, _polar(0.5, 90), "L"), (1.0, _polar(0.5, -90), "R"), (1.0, _polar(1.0, 31), "L"),
+        (1.0, _polar(1.0, -31), "R"), (1.0, _polar(0.3, 150), "L"), (1.0, (-0.6, 0.0), "R"),  # dead behind
+        (1.0, _polar(1.19, 120), "L"),
+        (1.0, _polar(1.0, 29), None), (1.0, _polar(1.0, -29), None), (1.0, _polar(0.4, 0), None),  # ahead
+        (1.0, _polar(1.21, 90), None), (1.0, _polar(2.0, 180), None),  # beyond the reach
+        (0.0, _polar(0.5, 90), None), (0.0, (0.0, 0.0), None),  # not seen
+    ]
+    own_used = set()
+    for o in base:
+        for seen, (x, y), want in cases:
+            ob = _with_enemy(o, seen, x, y)
+            own = int(policy.batch(single_to_flat(ob))[0])
+            expected = {"L": RICH_LEFT, "R": RICH_RIGHT, None: own}[want]
+            assert player(ob) == expected, (seen, x, y, want)
+            if want is None:
+                own_used.add(own)
+    assert len(own_used - {RICH_LEFT, RICH_RIGHT}) > 0  # the pass-through cases are not turns by chance
+    # the same program loads without zenrl and its zenrl.json describes the guard
+    extra = {"zenrl.json": ""}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        ts = torch.jit.load(str(out), _extra_files=extra)
+    j = json.loads(extra["zenrl.json"])
+    assert j["guard"]["turn_left"] == RICH_LEFT and "guarded" in j["call"]
+    assert int(ts(_as_tensors(_with_enemy(base[0], 1.0, 0.0, 0.5)))) == RICH_LEFT
+
+
+def test_a_guard_around_an_exported_file_equals_the_guarded_export(guarded_ckpt, tmp_path, capsys):
+    """``zenrl export --exported --checkpoint <export> --guard`` wraps an existing file (its
+    checkpoint may be gone): the same actions as exporting the checkpoint with the guard; the
+    users' action set turns at +-0.5233 rad/s (rows 3 and 4)."""
+    plain, wrapped, direct = tmp_path / "plain.pt", tmp_path / "wrapped.pt", tmp_path / "direct.pt"
+    tools.export(str(guarded_ckpt), str(plain))
+    tools.export(str(guarded_ckpt), str(direct), guard=(0.9, 45.0))
+    # without --exported the file is never loaded (a program)
+    assert cli_main(["export", "--checkpoint", str(plain), "--out", str(wrapped), "--guard"]) == 2
+    assert "--exported" in capsys.readouterr().err and not wrapped.exists()
+    assert cli_main(["export", "--exported", "--checkpoint", str(plain), "--out", str(wrapped), "--guard",
+                     "--guard-radius", "0.9", "--guard-angle", "45"]) == 0
+    env = make_env(tools.env_config_for(read_checkpoint(guarded_ckpt).run_config()))
+    obs = _observations(env, 8, seed=5)
+    env.close()
+    a, b = tools.ExportedPlayer(wrapped), tools.ExportedPlayer(direct)
+    grid = [(1.0, *_polar(r, d)) for r in (0.3, 0.85, 0.95) for d in (0, 40, 50, 100, 180, -50, -100)]
+    got = [(a(_with_enemy(o, *g)), b(_with_enemy(o, *g))) for o in obs for g in grid]
+    assert all(x == y for x, y in got)
+    assert {x for x, _ in got} >= {RICH_LEFT, RICH_RIGHT}
+    assert a.meta["guard"] == b.meta["guard"]
+    # no wrapping twice, nor more options than the guard's
+    with pytest.raises(ZenrlError, match="already guarded"):
+        tools.guard_exported(wrapped, tmp_path / "twice.pt")
+    assert cli_main(["export", "--exported", "--checkpoint", str(plain), "--out", str(tmp_path / "m.pt"),
+                     "--guard", "--member", str(guarded_ckpt)]) == 2
+    assert "only writes a guarded copy" in capsys.readouterr().err
+    # the users' action set
+    users = make_checkpoint(tmp_path / "users", BW, {**SHORT_MATCH, "enemy_detector": True}, seed=4)
+    meta = tools.export(str(users), str(tmp_path / "users.pt"), guard=(1.2, 30.0))
+    assert (meta["guard"]["turn_left"], meta["guard"]["turn_right"]) == (3, 4)
+
+
+def test_the_guard_refuses_a_policy_it_cannot_guard(ckpts, guarded_ckpt, tmp_path):
+    with pytest.raises(ZenrlError, match="enemy_seen"):  # no enemy detector
+        tools.export(str(ckpts["match"]), str(tmp_path / "a.pt"), guard=(1.2, 30.0))
+    with pytest.raises(ZenrlError, match="enemy_seen"):
+        tools.export(str(ckpts["cartpole"]), str(tmp_path / "b.pt"), guard=(1.2, 30.0))
+    for bad, what in (((0.0, 30.0), "guard-radius"), ((7.0, 30.0), "guard-radius"), ((1.0, 180.0), "guard-angle"),
+                      ((1.0, -1.0), "guard-angle"), ((float("nan"), 30.0), "guard-radius")):
+        with pytest.raises(ZenrlError, match=what):
+            tools.export(str(guarded_ckpt), str(tmp_path / "c.pt"), guard=bad)
+    assert tools.torchscript.guard_turns([(0.2, 0.0), (0.0, 0.5), (0.0, -0.5)]) == (1, 2)
+    with pytest.raises(ZenrlError, match="no such turn"):
+        tools.torchscript.guard_turns([(0.2, 0.0), (0.0, 0.5)])
+
+
+def test_a_guarded_mixture_seats_members_and_guards_each(guarded_ckpt, tmp_path):
+    other = make_checkpoint(tmp_path / "m", BW, GUARDED_MATCH, seed=11)
+    out = tmp_path / "mix.pt"
+    assert cli_main(["export", "--checkpoint", str(guarded_ckpt), "--member", str(other), "--out", str(out),
+                     "--guard"]) == 0
+    env = make_env(tools.env_config_for(read_checkpoint(guarded_ckpt).run_config()))
+    obs = [_with_enemy(o, 0.0, 0.0, 0.0) for o in _observations(env, 16, seed=6)]
+    refs = [[int(load_policy(c, env.observation_space, env.action_space).batch(single_to_flat(o))[0]) for o in obs]
+            for c in (guarded_ckpt, other)]
+    env.close()
+    assert refs[0] != refs[1]
+    player = tools.ExportedPlayer(out)
+    assert player.members == 2
+    for i in range(2):
+        player.current = i
+        assert [player(o) for o in obs] == refs[i]
+        assert player(_with_enemy(obs[0], 1.0, 0.0, -0.5)) == RICH_RIGHT
+    # wrapping a mixed export keeps pick()
+    plain = tmp_path / "mixplain.pt"
+    tools.export(str(guarded_ckpt), str(plain), members=[str(other)])
+    wrapped = tools.guard_exported(plain, tmp_path / "mixwrapped.pt")
+    p2 = tools.ExportedPlayer(wrapped["out"])
+    p2.current = 1
+    assert [p2(o) for o in obs] == refs[1]

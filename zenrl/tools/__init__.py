@@ -25,10 +25,10 @@ from zenrl.tools.loading import (MATCH_OPPONENTS, ExportedPlayer, env_config_for
 from zenrl.tools.media import play, record_episode, write_video
 from zenrl.tools.plotting import plot, read_metrics
 from zenrl.tools.stats import mean_ci, t975, wilson
-from zenrl.tools.torchscript import ExportedPolicy, export
+from zenrl.tools.torchscript import ExportedPolicy, export, guard_exported
 
 __all__ = ["PairJob", "PairResult", "RoundRobinRunner", "render_round_robin", "round_robin", "round_robin_jobs",
            "summarize_round_robin", "EpisodeResult", "EpisodeRunner", "ExportedPlayer", "ExportedPolicy", "Job", "MATCH_OPPONENTS",
-           "env_config_for", "evaluate", "export", "is_exported", "is_match_env", "load_player", "load_policy_env", "make_jobs", "mean_ci", "play", "plot", "print_json_line",
+           "env_config_for", "evaluate", "export", "guard_exported", "is_exported", "is_match_env", "load_player", "load_policy_env", "make_jobs", "mean_ci", "play", "plot", "print_json_line",
            "quiet_native_imports", "read_metrics", "record_episode", "render_table", "resolve_checkpoint", "summarize",
            "t975", "wilson", "write_video"]

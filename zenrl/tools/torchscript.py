@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
 from typing import Any, Dict, Mapping, Sequence
@@ -76,20 +77,131 @@ class _MixtureOfTensors(_MixtureOfDicts):
         return out
 
 
+#: the guard's defaults (``zenrl export --guard``; docs/burgerwar.md, "The guard"): the other
+#: robot seen within this many metres ...
+GUARD_RADIUS_M = 1.2
+#: ... and more than this many degrees off the heading: a reader needs its camera within 0.8 m and
+#: within 60 degrees of a marker's normal, and the side and back markers face 90 and 180 degrees
+#: away, so the front (no marker) kept towards it leaves every marker unreadable
+GUARD_ANGLE_DEG = 30.0
+
+
+class _Guarded(torch.nn.Module):
+    """A guard around an exported policy of a match env with the enemy detector: when
+    ``obs["enemy_seen"]`` (seen, x forward, y left; metres, the robot's own frame) shows the other
+    robot nearer than ``radius`` and more than ``angle`` off the heading, turn towards it on the
+    spot (action ``turn_left`` if it is on the left, else ``turn_right``); otherwise the inner
+    policy acts. Its markers are on the robot's sides and back: facing the other robot keeps them
+    out of its camera's reach and keeps its markers in front of ours."""
+
+    def __init__(self, inner: torch.nn.Module, radius_m: float, angle_deg: float, turn_left: int,
+                 turn_right: int) -> None:
+        super().__init__()
+        self.inner = inner
+        self.radius = float(radius_m)
+        self.cos_angle = math.cos(math.radians(angle_deg))
+        self.turn_left = int(turn_left)
+        self.turn_right = int(turn_right)
+
+    def forward(self, obs: Dict[str, torch.Tensor]) -> torch.Tensor:
+        e = obs["enemy_seen"]
+        if float(e[0]) > 0.5:
+            x = float(e[1])
+            y = float(e[2])
+            r = math.sqrt(x * x + y * y)
+            if r > 0.0 and r < self.radius and x < r * self.cos_angle:
+                return torch.tensor(self.turn_left if y > 0.0 else self.turn_right, dtype=torch.int64)
+        return self.inner(obs)
+
+
+class _GuardedMixture(_Guarded):
+    """:class:`_Guarded` around a mixed policy: ``pick(i)`` seats the inner mixture's member ``i``."""
+
+    @torch.jit.export
+    def pick(self, i: int) -> int:
+        return self.inner.pick(i)
+
+
+def guard_turns(table: Sequence[Sequence[float]]) -> tuple[int, int]:
+    """``(left, right)``: the fastest turns on the spot (v = 0) of an action table of ``(v, w)``
+    rows, w > 0 turning left. :class:`ZenrlError` where the table has none in either direction."""
+    left = max(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w > 0), default=None)
+    right = min(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w < 0), default=None)
+    if left is None or right is None:
+        raise ZenrlError("the guard turns on the spot, and this action set has no such turn in both directions")
+    return left[1], right[1]
+
+
+def _guard_meta(meta: Mapping[str, Any], radius_m: float, angle_deg: float) -> dict[str, Any]:
+    """The ``guard`` entry of ``zenrl.json`` for a policy described by ``meta``; ZenrlError where
+    the policy cannot be guarded (no ``enemy_seen`` input, no action table, a bad number)."""
+    if not (isinstance(radius_m, (int, float)) and 0.0 < radius_m <= 5.0):
+        raise ZenrlError(f"--guard-radius must be in (0, 5] m, got {radius_m!r}")
+    if not (isinstance(angle_deg, (int, float)) and 0.0 <= angle_deg < 180.0):
+        raise ZenrlError(f"--guard-angle must be in [0, 180) degrees, got {angle_deg!r}")
+    if "enemy_seen" not in meta.get("inputs", {}):
+        raise ZenrlError("the guard reads obs['enemy_seen']: export a policy of a match env with enemy_detector: true")
+    if meta.get("guard"):
+        raise ZenrlError("this policy is already guarded")
+    table = meta.get("actions_v_w")
+    if not table:
+        raise ZenrlError("the guard needs the policy's action table (a match env's users or rich action set)")
+    left, right = guard_turns(table)
+    return {"radius_m": float(radius_m), "angle_deg": float(angle_deg), "turn_left": left, "turn_right": right}
+
+
+def _guarded(module: torch.nn.Module, g: Mapping[str, Any], mixture: bool) -> torch.nn.Module:
+    cls = _GuardedMixture if mixture else _Guarded
+    return torch.jit.script(cls(module, g["radius_m"], g["angle_deg"], g["turn_left"], g["turn_right"]).eval())
+
+
+def _guard_call(g: Mapping[str, Any]) -> str:
+    return (f"; guarded: with obs['enemy_seen'] showing the other robot within {g['radius_m']} m and more than "
+            f"{g['angle_deg']} degrees off the heading it returns {g['turn_left']} (turn left) or "
+            f"{g['turn_right']} (turn right)")
+
+
+def guard_exported(src: str | os.PathLike[str], out: str | os.PathLike[str], radius_m: float = GUARD_RADIUS_M,
+                   angle_deg: float = GUARD_ANGLE_DEG) -> dict[str, Any]:
+    """Write ``src`` (a ``zenrl export`` file: a program, load only one you trust) with the guard
+    around it to ``out``; its ``zenrl.json`` gains ``guard``. Returns that description."""
+    extra = {"zenrl.json": ""}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            module = torch.jit.load(str(src), map_location="cpu", _extra_files=extra)
+        meta = json.loads(extra["zenrl.json"])
+    except Exception as e:  # torch raises many types for a damaged archive
+        raise ZenrlError(f"exported policy {str(src)!r} is unreadable: {type(e).__name__}: {e}") from None
+    if not isinstance(meta, dict):
+        raise ZenrlError(f"exported policy {str(src)!r}: zenrl.json is not an object")
+    g = _guard_meta(meta, radius_m, angle_deg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        guarded = _guarded(module, g, int(meta.get("members", 1)) > 1)
+        meta = {**meta, "guard": g, "call": str(meta.get("call", "")) + _guard_call(g)}
+        torch.jit.save(guarded, str(out), _extra_files={"zenrl.json": json.dumps(meta)})
+    return {"out": str(out), **meta}
+
+
 def _example_obs(space: gym.Space, seed: int = 0) -> Any:
     space.seed(seed)
     return space.sample()
 
 
 def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = None,
-           env_kwargs: Mapping[str, Any] | None = None, members: Sequence[str] = ()) -> dict[str, Any]:
+           env_kwargs: Mapping[str, Any] | None = None, members: Sequence[str] = (),
+           guard: tuple[float, float] | None = None) -> dict[str, Any]:
     """Write the greedy policy of ``checkpoint`` as TorchScript (``torch.jit.trace``) to ``out``,
     with a ``zenrl.json`` extra file describing the inputs and the action set. Load it with
     ``torch.jit.load(out)`` (no zenrl needed). ``checkpoint``: a file, or a folder's newest.
 
     ``members``: more checkpoints of the same env: the file is then a mixed policy over
     ``checkpoint`` and them, one of which plays each match (``pick(i)`` seats member ``i``;
-    zenrl draws one uniformly as each match begins; ``zenrl.json`` says ``"members": K``)."""
+    zenrl draws one uniformly as each match begins; ``zenrl.json`` says ``"members": K``).
+
+    ``guard``: ``(radius_m, angle_deg)``: the file plays with the guard (:class:`_Guarded`)
+    around the policy; ``zenrl.json`` says ``"guard": {...}``."""
     checkpoint = str(resolve_checkpoint(checkpoint))
     paths = [checkpoint, *(str(resolve_checkpoint(m)) for m in members)]
     for p in paths:
@@ -141,6 +253,13 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
 
             table = {"users": USERS_ACTIONS, "rich": RICH_ACTIONS}.get(env.unwrapped.action_set)
             meta["actions_v_w"] = np.asarray(table).tolist() if table is not None else None
+        if guard is not None:
+            g = _guard_meta(meta, *guard)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                traced = _guarded(traced, g, len(paths) > 1)
+            meta["guard"] = g
+            meta["call"] += _guard_call(g)
     finally:
         env.close()
     with warnings.catch_warnings():
