@@ -688,8 +688,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "robot's markers are on its sides and back); with --exported, --checkpoint may be an "
                         "exported file to wrap")
     s.add_argument("--guard-radius", type=float, default=1.2, metavar="M", help="the guard's reach in metres (1.2)")
-    s.add_argument("--guard-angle", type=float, default=30.0, metavar="DEG",
-                   help="the guard turns when the other robot is more than this many degrees off the heading (30)")
+    s.add_argument("--guard-angle", type=float, default=15.0, metavar="DEG",
+                   help="the guard turns when the other robot is more than this many degrees off the heading (15)")
     s.add_argument("--exported", action="store_true", help="with --guard: --checkpoint may be a `zenrl export` file "
                                                            "(a program, which runs code when loaded: only one you trust)")
     s.set_defaults(func=cmd_export)

@@ -17,6 +17,7 @@ MODELS = {
     "burgerwar_league.pt": ("zenrl/BurgerWar-v0", "waypoint", 4, 3),
     "burgerwar_camera.pt": ("zenrl/BurgerWarImage-v0", "cheese", 4, 3),
     "burgerwar_pfsp.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
+    "burgerwar_pfsp_guard.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
 }
 
 
@@ -62,3 +63,37 @@ def test_shipped_models_of_different_observations_meet_in_a_round_robin(tmp_path
     cmd[cmd.index('{"match_time": 20}')] = '{"match_time": 20, "enemy_detector": false}'
     r = subprocess.run([*cmd, f"{league},{pfsp}"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert r.returncode != 0 and "enemy_seen" in r.stderr, r.stderr[-3000:]
+
+
+def test_the_guarded_model_is_burgerwar_pfsp_with_the_guard():
+    """burgerwar_pfsp_guard.pt is burgerwar_pfsp.pt inside `zenrl export --guard` (1.2 m, 15
+    degrees): with the other robot seen nowhere near, both pick the same action; seen 0.5 m away on
+    the left (90 degrees off) or behind on the right, the guarded one turns on the spot towards it
+    at 1.4 rad/s (the rich set's rows 8 and 9), and 10 degrees off it does not."""
+    import numpy as np
+
+    from zenrl.common.env_factory import make_env
+    from zenrl.common.config import RunConfig
+    from zenrl.common.policy_io import ExportedPlayer
+
+    plain, guarded = ExportedPlayer(ROOT / "models" / "burgerwar_pfsp.pt"), ExportedPlayer(ROOT / "models" / "burgerwar_pfsp_guard.pt")
+    assert guarded.meta["guard"] == {"radius_m": 1.2, "angle_deg": 15.0, "turn_left": 8, "turn_right": 9}
+    assert {k: v for k, v in guarded.meta.items() if k not in ("guard", "call")} == \
+        {k: v for k, v in plain.meta.items() if k != "call"}
+    env = make_env(RunConfig.model_validate({"env": {"id": plain.meta["env"], "kwargs": plain.meta["env_kwargs"]}}).env)
+    obs, _ = env.reset(seed=9)
+    rng = np.random.default_rng(9)
+    seen = []
+    for _ in range(40):
+        far = {**obs, "enemy_seen": np.zeros(3, np.float32)}
+        assert guarded(far) == plain(far)
+        seen.append(plain(far))
+        assert guarded({**obs, "enemy_seen": np.array([1.0, 0.0, 0.5], np.float32)}) == 8
+        assert guarded({**obs, "enemy_seen": np.array([1.0, -0.4, -0.1], np.float32)}) == 9
+        ahead = {**obs, "enemy_seen": np.array([1.0, 0.5 * np.cos(0.17), 0.5 * np.sin(0.17)], np.float32)}
+        assert guarded(ahead) == plain(ahead)
+        obs, _, te, tr, _ = env.step(int(rng.integers(env.action_space.n)))
+        if te or tr:
+            obs, _ = env.reset()
+    env.close()
+    assert len(set(seen)) > 1  # the policy inside acts: not one constant action

@@ -78,12 +78,14 @@ class _MixtureOfTensors(_MixtureOfDicts):
 
 
 #: the guard's defaults (``zenrl export --guard``; docs/burgerwar.md, "The guard"): the other
-#: robot seen within this many metres ...
+#: robot seen within this many metres (a reader needs its camera within 0.8 m of a marker) ...
 GUARD_RADIUS_M = 1.2
-#: ... and more than this many degrees off the heading: a reader needs its camera within 0.8 m and
-#: within 60 degrees of a marker's normal, and the side and back markers face 90 and 180 degrees
-#: away, so the front (no marker) kept towards it leaves every marker unreadable
-GUARD_ANGLE_DEG = 30.0
+#: ... and more than this many degrees off the heading. A side marker is read from at most 60
+#: degrees off its normal, so from 30 degrees off our heading or more. Released below this angle,
+#: the policy may turn by up to 16 degrees in one decision (1.4 rad/s at 5 Hz) before the guard
+#: looks again: the angle must leave that margin (at 30 an exploiter read the sides the guard
+#: had just released; docs/burgerwar.md)
+GUARD_ANGLE_DEG = 15.0
 
 
 class _Guarded(torch.nn.Module):
