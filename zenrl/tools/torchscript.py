@@ -14,7 +14,8 @@ import torch
 
 from zenrl.common.errors import ZenrlError
 from zenrl.common.recurrent import RecurrentQNetwork
-from zenrl.tools.loading import env_config_for, is_exported, is_match_env, load_policy_env, resolve_checkpoint
+from zenrl.tools.loading import (ExportedPlayer, env_config_for, is_exported, is_match_env, load_policy_env,
+                                 resolve_checkpoint)
 
 class ExportedPolicy(torch.nn.Module):
     """Greedy policy for TorchScript: one observation (no batch dim) -> int64 scalar action.
@@ -167,20 +168,12 @@ def guard_exported(src: str | os.PathLike[str], out: str | os.PathLike[str], rad
                    angle_deg: float = GUARD_ANGLE_DEG) -> dict[str, Any]:
     """Write ``src`` (a ``zenrl export`` file: a program, load only one you trust) with the guard
     around it to ``out``; its ``zenrl.json`` gains ``guard``. Returns that description."""
-    extra = {"zenrl.json": ""}
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            module = torch.jit.load(str(src), map_location="cpu", _extra_files=extra)
-        meta = json.loads(extra["zenrl.json"])
-    except Exception as e:  # torch raises many types for a damaged archive
-        raise ZenrlError(f"exported policy {str(src)!r} is unreadable: {type(e).__name__}: {e}") from None
-    if not isinstance(meta, dict):
-        raise ZenrlError(f"exported policy {str(src)!r}: zenrl.json is not an object")
+    player = ExportedPlayer(src)  # refuses a damaged archive or a zenrl.json without env and inputs
+    module, meta = player.module, player.meta
     g = _guard_meta(meta, radius_m, angle_deg)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        guarded = _guarded(module, g, int(meta.get("members", 1)) > 1)
+        guarded = _guarded(module, g, player.members > 1)
         meta = {**meta, "guard": g, "call": str(meta.get("call", "")) + _guard_call(g)}
         torch.jit.save(guarded, str(out), _extra_files={"zenrl.json": json.dumps(meta)})
     return {"out": str(out), **meta}
