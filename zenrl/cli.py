@@ -472,7 +472,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level, "export")
     tools.quiet_native_imports()
-    guard = (args.guard_radius, args.guard_angle) if args.guard else None
+    from zenrl.tools.torchscript import GUARD_ANGLE_DEG, GUARD_RADIUS_M
+
+    guard = None
+    if args.guard:
+        guard = (GUARD_RADIUS_M if args.guard_radius is None else args.guard_radius,
+                 GUARD_ANGLE_DEG if args.guard_angle is None else args.guard_angle)
     if tools.is_exported(args.checkpoint):
         # an exported file can only be wrapped (its weights are a program's now)
         if not args.exported:
@@ -687,8 +692,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "it is seen nearer than --guard-radius and more than --guard-angle off the heading (the "
                         "robot's markers are on its sides and back); with --exported, --checkpoint may be an "
                         "exported file to wrap")
-    s.add_argument("--guard-radius", type=float, default=1.2, metavar="M", help="the guard's reach in metres (1.2)")
-    s.add_argument("--guard-angle", type=float, default=15.0, metavar="DEG",
+    # defaults: zenrl.tools.torchscript.GUARD_RADIUS_M, GUARD_ANGLE_DEG (not imported here: torch)
+    s.add_argument("--guard-radius", type=float, metavar="M", help="the guard's reach in metres (1.2)")
+    s.add_argument("--guard-angle", type=float, metavar="DEG",
                    help="the guard turns when the other robot is more than this many degrees off the heading (15)")
     s.add_argument("--exported", action="store_true", help="with --guard: --checkpoint may be a `zenrl export` file "
                                                            "(a program, which runs code when loaded: only one you trust)")
