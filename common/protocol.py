@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 from typing import Any, ClassVar, Iterable, Mapping, Union
 
 import lz4.block
@@ -319,7 +320,10 @@ _DEFAULT_LIMITS = DecodeLimits()
 
 
 def decode_array(name: str, m: Any) -> np.ndarray:
-    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed)."""
+    """Wire map -> read-only ``np.ndarray`` view on the payload (no copy unless compressed). An
+    ``np.ndarray`` is one :func:`_wire_map` already decoded (no wire value decodes to one)."""
+    if type(m) is np.ndarray:
+        return m
     if type(m) is not dict or m.keys() != _ARRAY_KEYS:
         if type(m) is dict and m.keys() == _PACKED_KEYS:
             return _decode_packed(name, m)
@@ -576,11 +580,30 @@ def _view_decoder(cls: type["Message"]) -> Any:
 VIEW_MIN_BYTES = 64 * 1024
 
 
-def _wire_map(w: _WireArray) -> dict[str, Any]:
-    data = w.data
-    if w.dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
+def _wire_map(w: _WireArray) -> np.ndarray | dict[str, Any]:
+    """A wire array as msgspec read it -> the array :func:`decode_array` would make of it, when
+    it is a plain one it accepts (known dtype, a shape of at most :data:`MAX_NDIM` dimensions
+    whose bytes the data holds exactly, not empty, not compressed: what every honest chunk
+    sends); otherwise the map msgpack would have given, which ``decode_array`` checks and, if
+    it must, refuses with the reason. The short cut skips building the map and reading it
+    back, a few microseconds per array."""
+    dtype, shape, data = w.dtype, w.shape, w.data
+    if w.codec is msgspec.UNSET and w.size is msgspec.UNSET and len(shape) <= MAX_NDIM:
+        dt = _DTYPES.get(dtype)
+        if dt is not None:
+            expected = dt.itemsize
+            for d in shape:
+                if d < 0:
+                    break
+                expected *= d
+            else:
+                if expected and expected == len(data):
+                    if dtype != "uint8" or expected < VIEW_MIN_BYTES:
+                        data = bytes(data)
+                    return np.frombuffer(data, dtype=dt).reshape(shape)
+    if dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
         data = bytes(data)
-    m = {"dtype": w.dtype, "shape": w.shape, "data": data}
+    m = {"dtype": dtype, "shape": shape, "data": data}
     if w.codec is not msgspec.UNSET:
         m["codec"] = w.codec
     if w.size is not msgspec.UNSET:
@@ -801,6 +824,11 @@ class TransitionBatch(Message):
 
     def frame_refs(self) -> dict[str, np.ndarray]:
         """The data fields that are frame ids (empty outside frame mode)."""
+        return dict(self._frame_refs)
+
+    @cached_property
+    def _frame_refs(self) -> dict[str, np.ndarray]:
+        # found once per message: the checks and the replay's insert both ask
         if self.frames is None:
             return {}
         return {k: v for k, v in self.data.items() if frame_table(k) in self.frames}

@@ -139,6 +139,13 @@ class FrameReplay:
                 raise ValueError(f"max_bytes={max_bytes} holds no transition of ~{per_item:.0f} bytes")
             capacity = min(capacity, fit)
         self._inner = InMemoryReplay(inner_spec, capacity, alpha=alpha, uniform=uniform, eps=eps, seed=seed)
+        # the columns a chunk brings itself (its frame ids become the gkey columns): what
+        # _precheck's fast path compares, without building the gkey stand-ins
+        self._col_keys = frozenset(item_spec)
+        self._col_checks = [(k, np.dtype(s.dtype), s.shape) for k, s in item_spec.items()]
+        # np.dtype objects: comparing them costs far less than ``dtype.name``
+        self._frame_checks = [(t, np.dtype(s.dtype), s) for t, s in self._frame_spec.items()]
+        self._ref_width = {f: max(math.prod(shape), 1) for f, shape in self._ref_shape.items()}
         self._fcap = max(1, math.ceil(capacity * frames_per_item))
         self._frames = {k: np.zeros((self._fcap, *s.shape), s.dtype) for k, s in self._frame_spec.items()}
         self._last_ref = np.full(self._fcap, -1, np.int64)
@@ -221,9 +228,9 @@ class FrameReplay:
         if frames.keys() != self._frame_spec.keys():
             raise SpecMismatch(f"frame tables {sorted(frames)} differ from the replay's {sorted(self._frame_spec)}")
         n_f = -1
-        for t, s in self._frame_spec.items():
+        for t, dt, s in self._frame_checks:
             a = frames[t]
-            if a.dtype.name != s.dtype or a.shape[1:] != s.shape:
+            if a.dtype != dt or a.shape[1:] != s.shape:
                 raise SpecMismatch(f"frames {t}: {a.dtype.name}{list(a.shape[1:])} differs from the replay's {s.dtype}{list(s.shape)}")
             if n_f < 0:
                 n_f = a.shape[0]
@@ -292,12 +299,34 @@ class FrameReplay:
         fb = c.frame_base
         if isinstance(fb, bool) or not isinstance(fb, (int, np.integer)) or fb < 0:
             raise ValueError(f"frame_base must be an int >= 0, got {fb!r}")
-        n = self._inner._validate_batch({**c.batch, **{GKEY_PREFIX + f: self._gkey_shape(f, c.refs[f]) for f in c.refs}})
+        n = self._batch_size(c.batch, c.refs)
         p = None if c.priorities is None else _check_priorities(c.priorities, n, "priorities")
         for f in c.refs:
             if c.refs[f].shape[0] != n:
                 raise SpecMismatch(f"frame ids {f}: batch size {c.refs[f].shape[0]} differs from {n}")
         return n_f, n, p
+
+    def _batch_size(self, batch: Mapping[str, np.ndarray], refs: Mapping[str, np.ndarray]) -> int:
+        """The chunk's batch size B after the columns' check: ``batch`` as the spec's columns and
+        ``refs`` (already checked by :meth:`check`) as the gkey columns they become. A chunk that
+        fails the fast comparison is checked again by the full one, which raises the error."""
+        if isinstance(batch, Mapping) and batch.keys() == self._col_keys:
+            n = -1
+            for name, dtype, shape in self._col_checks:
+                v = batch[name]
+                if type(v) is not np.ndarray or v.dtype != dtype:
+                    break
+                vs = v.shape
+                if vs[1:] != shape or len(vs) != len(shape) + 1 or (n >= 0 and vs[0] != n):
+                    break
+                n = vs[0]
+            else:
+                if n >= 0 and all(ids.shape[0] == n for ids in refs.values()):
+                    return n
+        return self._full_batch_size(batch, refs)
+
+    def _full_batch_size(self, batch: Mapping[str, np.ndarray], refs: Mapping[str, np.ndarray]) -> int:
+        return self._inner._validate_batch({**batch, **{GKEY_PREFIX + f: self._gkey_shape(f, refs[f]) for f in refs}})
 
     def _insert_group(self, group: list[tuple[int, "FrameChunk", int, int, np.ndarray | None]], out: list[Any]) -> None:
         """Chunks that passed :meth:`_precheck`, whose frames together fit the ring once."""
@@ -326,13 +355,18 @@ class FrameReplay:
                     hist.counts.popleft()
                     hist.gbases.popleft()
             # ids of one item flattened: [n, prod(id shape)]
-            gk = {f: self._resolve(hist, np.asarray(ids, np.int64)).reshape(n, max(math.prod(self._ref_shape[f]), 1))
-                  for f, ids in c.refs.items()}
+            gk = {}
+            complete = True  # every id resolved (the common case: no -1 to look for)
+            for f, ids in c.refs.items():
+                g, whole = self._resolve(hist, np.asarray(ids, np.int64))
+                gk[f] = g.reshape(n, self._ref_width[f])
+                complete &= whole
             ok = None
-            for g in gk.values():
-                good = (g >= 0).all(axis=1)
-                ok = good if ok is None else ok & good
-            dropped = int(n - np.count_nonzero(ok)) if n else 0
+            if not complete:
+                for g in gk.values():
+                    good = (g >= 0).all(axis=1)
+                    ok = good if ok is None else ok & good
+            dropped = int(n - np.count_nonzero(ok)) if n and ok is not None else 0
             data = dict(c.batch)
             for f, g in gk.items():
                 data[GKEY_PREFIX + f] = g
@@ -409,14 +443,20 @@ class FrameReplay:
                 ring[:n_f - n1] = src[n1:]
         self._frames_total += n_f
 
-    def _resolve(self, hist: _History, ids: np.ndarray) -> np.ndarray:
-        """Stream frame ids -> global frame keys (``-1`` where no stored frame has that id)."""
+    def _resolve(self, hist: _History, ids: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Stream frame ids -> global frame keys (``-1`` where no stored frame has that id), and
+        whether every id resolved."""
         if not hist.bases:
-            return np.full(ids.shape, -1, np.int64)
+            return np.full(ids.shape, -1, np.int64), not ids.size
         floor = self._frames_total - self._fcap
         base, cnt, gb = hist.bases[-1], hist.counts[-1], hist.gbases[-1]
-        if ids.size and ids.min() >= base and ids.max() < base + cnt:  # all in the newest chunk
+        if not ids.size:
+            return ids + 0, True
+        lo, hi = int(ids.min()), int(ids.max())
+        if lo >= base and hi < base + cnt:  # all in the newest chunk
             g = ids + (gb - base)
+            if lo + (gb - base) >= floor:  # and that chunk's frames are all still in the ring
+                return g, True
         else:
             bases = np.fromiter(hist.bases, np.int64, len(hist.bases))
             ends = bases + np.fromiter(hist.counts, np.int64, len(hist.counts))
@@ -426,7 +466,7 @@ class FrameReplay:
             g = gbs[jc] + ids - bases[jc]
             g[(j < 0) | (ids >= ends[jc])] = -1
         g[g < floor] = -1
-        return g
+        return g, False
 
     # ------------------------------------------------------------------ priorities
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> int:
