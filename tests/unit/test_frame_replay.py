@@ -353,3 +353,29 @@ def test_rejects_mismatched_chunks_without_storing():
     assert store.frames_total == 0 and store.size == 0
     store.insert("a", 0, frames, one, refs)
     assert store.size == 1
+
+
+def test_the_columns_fast_check_refuses_what_the_full_check_does_with_its_words():
+    """A chunk's columns are compared without building the gkey columns its ids become; every
+    way a chunk can be wrong there is refused with the full check's message, and a good chunk
+    gets its batch size."""
+    store = make_store(4, 10, 1.0)
+    one = {"action": np.zeros(2, np.int64), "reward": np.zeros(2, np.float32),
+           "terminated": np.zeros(2, bool), "truncated": np.zeros(2, bool)}
+    refs = {f: np.zeros((2, 4), np.int64) for f in ("obs/cam", "next_obs/cam", "obs/vec", "next_obs/vec")}
+    assert store._batch_size(one, refs) == 2
+    wrong = [
+        ({**one, "reward": np.zeros(2, np.float64)}, refs, "field 'reward' has dtype float64"),
+        ({**one, "reward": np.zeros((2, 1), np.float32)}, refs, "field 'reward' has shape (2, 1)"),
+        ({**one, "reward": [0.0, 0.0]}, refs, "field 'reward' must be a numpy array"),
+        ({**one, "reward": np.zeros(3, np.float32)}, refs, "field 'reward' has batch size 3"),
+        ({k: v for k, v in one.items() if k != "reward"}, refs, "missing ['reward']"),
+        ({**one, "extra": np.zeros(2)}, refs, "unexpected ['extra']"),
+        (one, {**refs, "next_obs/vec": np.zeros((3, 4), np.int64)}, "field 'frame_keys/next_obs/vec' has batch size 3"),
+    ]
+    for batch, r, words in wrong:
+        with pytest.raises(SpecMismatch) as fast:
+            store._batch_size(batch, r)
+        with pytest.raises(SpecMismatch) as full:
+            store._full_batch_size(batch, r)
+        assert str(fast.value) == str(full.value) and words in str(fast.value), (str(fast.value), words)

@@ -146,6 +146,32 @@ def test_the_view_reader_accepts_and_refuses_exactly_what_msgpack_s_reader_does(
     assert viewed > 120, f"the view reader read only {viewed} messages"
 
 
+def test_the_view_reader_s_plain_arrays_are_what_the_array_check_makes_of_them():
+    """The view reader turns a plain wire array straight into an array; every shape and length
+    it must not take that way (negative, empty, too many dimensions, bytes that do not match,
+    an unknown dtype, a compressed map) goes to the array check and gets its rejection."""
+    frames = np.zeros((6, 96, 96, 3), np.uint8)
+    msg = P.TransitionBatch("actor-1", 7, 3, {"obs": np.arange(6, dtype=np.int64), "r": np.zeros(6, np.float32)},
+                            np.ones(6, np.float32), frames={"obs": frames}, frame_base=10)
+    edits = [("shape", [6, 96, 96, -3]), ("shape", [6, 96, 96, 3, 1, 1, 1, 1, 1]), ("shape", [0, 96, 96, 3]),
+             ("shape", [6, 96, 96, 2]), ("shape", [6 * 96, 96 * 3]), ("dtype", "uint9"), ("dtype", "float32"),
+             ("data", b"\0" * 10), ("size", 6 * 96 * 96 * 3), (None, None)]
+    for key, value in edits:
+        env = msgpack.unpackb(msg.encode(), raw=False)
+        if key is not None:
+            env["frames"]["obs"][key] = value
+        payload = msgpack.packb(env, use_bin_type=True)
+        assert len(payload) >= P.VIEW_MIN_BYTES or key == "data"
+        want, got = _outcome(lambda: _read_by_msgpack(P.TransitionBatch, payload)), _outcome(lambda: P.TransitionBatch.decode(payload))
+        assert want[0] == got[0], (key, value, want, got)
+        if want[0] == "rejected":
+            assert want[1:] == got[1:], (key, value, want, got)
+        else:
+            assert got[1].frames["obs"].shape == tuple(env["frames"]["obs"]["shape"]), (key, value)
+            assert np.shares_memory(got[1].frames["obs"], np.frombuffer(payload, np.uint8)), (key, value)
+    assert _outcome(lambda: P.TransitionBatch.decode(msg.encode()))[0] == "ok"
+
+
 def _env(**over):
     env = msgpack.unpackb(MESSAGES[0].encode(), raw=False)
     env.update(over)
