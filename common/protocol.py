@@ -439,6 +439,10 @@ class Message:
     OMIT_NONE: ClassVar[frozenset[str]] = frozenset()
     #: integer fields whose range is narrower than their kind's (:data:`INT_RANGES`)
     RANGES: ClassVar[dict[str, tuple[int, int]]] = {}
+    #: the view reader (:func:`_unpack_views`) hands plain arrays to the checks already made
+    #: (:func:`_wire_map`); a type whose ``_precheck`` reads the envelope's array maps must
+    #: leave this False, so that it sees maps
+    DIRECT_ARRAYS: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw: Any) -> None:
         super().__init_subclass__(**kw)
@@ -580,15 +584,16 @@ def _view_decoder(cls: type["Message"]) -> Any:
 VIEW_MIN_BYTES = 64 * 1024
 
 
-def _wire_map(w: _WireArray) -> np.ndarray | dict[str, Any]:
-    """A wire array as msgspec read it -> the array :func:`decode_array` would make of it, when
-    it is a plain one it accepts (known dtype, a shape of at most :data:`MAX_NDIM` dimensions
+def _wire_map(w: _WireArray, direct: bool = True) -> np.ndarray | dict[str, Any]:
+    """A wire array as msgspec read it -> with ``direct`` (the message type's
+    :attr:`Message.DIRECT_ARRAYS`), the array :func:`decode_array` would make of it when it is a
+    plain one that function accepts (known dtype, a shape of at most :data:`MAX_NDIM` dimensions
     whose bytes the data holds exactly, not empty, not compressed: what every honest chunk
     sends); otherwise the map msgpack would have given, which ``decode_array`` checks and, if
     it must, refuses with the reason. The short cut skips building the map and reading it
     back, a few microseconds per array."""
     dtype, shape, data = w.dtype, w.shape, w.data
-    if w.codec is msgspec.UNSET and w.size is msgspec.UNSET and len(shape) <= MAX_NDIM:
+    if direct and w.codec is msgspec.UNSET and w.size is msgspec.UNSET and len(shape) <= MAX_NDIM:
         dt = _DTYPES.get(dtype)
         if dt is not None:
             expected = dt.itemsize
@@ -626,13 +631,14 @@ def _unpack_views(cls: type["Message"], payload: Any, max_bytes: int) -> dict[st
         return _unpack(payload, max_bytes)
     env: dict[str, Any] = {}
     rest = []
+    direct = cls.DIRECT_ARRAYS
     for n in s.__struct_fields__:
         v = getattr(s, n)
         t = type(v)
         if t is _WireArray:
-            v = _wire_map(v)
+            v = _wire_map(v, direct)
         elif t is dict and v and type(next(iter(v.values()))) is _WireArray:
-            v = {k: _wire_map(w) for k, w in v.items()}
+            v = {k: _wire_map(w, direct) for k, w in v.items()}
         elif t not in _PLAIN:
             if v is msgspec.UNSET:
                 continue
@@ -809,6 +815,7 @@ class TransitionBatch(Message):
     this chunk or of the same actor's earlier chunks."""
 
     TYPE: ClassVar[str] = "transitions"
+    DIRECT_ARRAYS: ClassVar[bool] = True
     SCHEMA: ClassVar[dict[str, str]] = {"actor_id": "name", "policy_version": "int", "seq": "uint",
                                         "data": "arrays", "priorities": "array?", "frames": "arrays?",
                                         "frame_base": "uint?"}
@@ -910,6 +917,7 @@ class SampleReply(Message):
     (:class:`~zenrl.common.replay_client.ShardedReplayClient`). Left out by replays that predate it."""
 
     TYPE: ClassVar[str] = "sample_reply"
+    DIRECT_ARRAYS: ClassVar[bool] = True
     SCHEMA: ClassVar[dict[str, str]] = {"request_id": "uint", "status": "str", "reason": "str",
                                         "replay_size": "uint", "keys": "array?",
                                         "probabilities": "array?", "weights": "array?",

@@ -172,6 +172,16 @@ def test_the_view_reader_s_plain_arrays_are_what_the_array_check_makes_of_them()
     assert _outcome(lambda: P.TransitionBatch.decode(msg.encode()))[0] == "ok"
 
 
+def test_types_whose_precheck_reads_array_maps_get_maps_from_the_view_reader():
+    """A type that reads its envelope's array maps before the checks (an unroll's declared
+    steps) must see maps: only types with the base ``_precheck`` take arrays already made."""
+    direct = {t for t, cls in P._REGISTRY.items() if cls.DIRECT_ARRAYS}
+    assert {"transitions", "sample_reply"} <= direct
+    for t in direct:
+        assert P._REGISTRY[t]._precheck is P.Message._precheck, t
+    assert not P.Unroll.DIRECT_ARRAYS
+
+
 def _env(**over):
     env = msgpack.unpackb(MESSAGES[0].encode(), raw=False)
     env.update(over)
