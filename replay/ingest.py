@@ -117,20 +117,27 @@ class Ingest:
 
     def _pull(self, first: Any) -> Iterator[tuple[bytes, str]]:
         """``first`` and the chunks that wait behind it, up to ``replay.ingest_batch_chunks``
-        chunks and ``replay.queue_max_bytes`` bytes (the first always). What waits in the inbox
+        chunks and ``replay.queue_max_bytes`` bytes (the first always); if that is less than a
+        batch, once more after ``replay.ingest_linger_s``. What waits in the inbox
         is taken at once (leaving it empty: Zenoh's receive thread, if it waited on a full
         inbox, is woken once and refills it while the batch is ingested, not once per chunk).
         An inbox of one chunk is also taken from as the batch is decoded, so that what the
         receive thread puts in meanwhile joins the batch."""
         taken, held = 0, 0
         limit_n, limit_b = self.rcfg.ingest_batch_chunks, self.rcfg.queue_max_bytes
+        cap = min(limit_n, self.inbox_capacity + 1)
         waiting, size = [first], first.nbytes
-        while len(waiting) < min(limit_n, self.inbox_capacity + 1) and size < limit_b:
-            r = self.inbox.get_nowait()
-            if r is None:
-                break
-            waiting.append(r)
-            size += r.nbytes
+        linger = self.rcfg.ingest_linger_s
+        for wait in ((False, True) if linger > 0 else (False,)):
+            if wait:  # a short batch: wait once for more (the stop's event ends the wait)
+                if len(waiting) >= cap or size >= limit_b or self.closing.wait(linger):
+                    break
+            while len(waiting) < cap and size < limit_b:
+                r = self.inbox.get_nowait()
+                if r is None:
+                    break
+                waiting.append(r)
+                size += r.nbytes
         for i, r in enumerate(waiting):
             item = self._take(r)
             waiting[i] = None  # a dropped chunk's buffer goes now
