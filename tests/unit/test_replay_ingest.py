@@ -173,3 +173,62 @@ def test_close_inserts_what_was_waiting_in_the_inbox(monkeypatch):
     assert svc.buffer.inserts_total == 6 * B and svc.ingestor.pending() == 0 and inbox.qsize() == 0
     assert node.withdrawn == [svc.keys.transitions_all]
     assert not any(t.is_alive() for t in sup.threads)
+
+
+
+class _Closing:
+    """The ingest's stop event, whose timed wait stands for the linger: it records each wait
+    and puts ``arrive`` into the inbox during it, as Zenoh's receive thread would."""
+
+    def __init__(self, inbox, arrive=(), stopping=False):
+        self.inbox, self.arrive, self.stopping, self.waits = inbox, list(arrive), stopping, []
+
+    def wait(self, timeout):
+        self.waits.append(timeout)
+        for key in self.arrive:
+            self.inbox.put(key, _payload(0))
+        self.arrive = []
+        return self.stopping
+
+    def is_set(self):
+        return self.stopping
+
+
+def _pull(linger, waiting=(), arrive=(), stopping=False, capacity=8):
+    """Keys of one batch the ingest gathers from a first chunk ``a`` with ``waiting`` in the
+    inbox and ``arrive`` coming during a linger; and the waits it made."""
+    from tests.unit.inbox_fake import FakeReceived
+
+    svc = _service(ingest_linger_s=linger)
+    inbox = FakeInbox("k", capacity)
+    svc.ingestor.inbox, svc.ingestor.inbox_capacity = inbox, capacity
+    for key in waiting:
+        inbox.put(key, _payload(0))
+    svc.ingestor.closing = closing = _Closing(inbox, arrive, stopping)
+    keys = [key for _, key in svc.ingestor._pull(FakeReceived("a", _payload(0)))]
+    left = []
+    while (r := inbox.get_nowait()) is not None:
+        left.append(r.key)
+    return keys, closing.waits, left
+
+
+def test_a_short_batch_waits_once_for_more_chunks():
+    keys, waits, left = _pull(0.005, waiting=("b",), arrive=("c", "d"))
+    assert keys == ["a", "b", "c", "d"] and waits == [0.005] and left == []
+
+
+def test_a_full_batch_does_not_wait():
+    # the first and 8 waiting fill a batch (an inbox of 8 chunks: 9 at most)
+    w = [f"w{i}" for i in range(9)]
+    keys, waits, left = _pull(0.005, waiting=w[:8])
+    assert keys == ["a", *w[:8]] and waits == []
+    # what arrives during the one wait is taken up to the batch's bound; the rest stays
+    keys, waits, left = _pull(0.005, waiting=w[:5], arrive=("x", "y", "z", "q"), capacity=8)
+    assert keys == ["a", *w[:5], "x", "y", "z"] and waits == [0.005] and left == ["q"]
+
+
+def test_no_linger_and_a_stopping_ingest_take_only_what_waits():
+    keys, waits, left = _pull(0, waiting=("b",), arrive=("c",))
+    assert keys == ["a", "b"] and waits == []
+    keys, waits, left = _pull(0.005, waiting=("b",), arrive=("c",), stopping=True)
+    assert keys == ["a", "b"] and left == ["c"]  # the stop ended the wait: c waits for the drain
