@@ -593,6 +593,8 @@ def _wire_map(w: _WireArray, direct: bool = True) -> np.ndarray | dict[str, Any]
     it must, refuses with the reason. The short cut skips building the map and reading it
     back, a few microseconds per array."""
     dtype, shape, data = w.dtype, w.shape, w.data
+    if dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
+        data = bytes(data)
     if direct and w.codec is msgspec.UNSET and w.size is msgspec.UNSET and len(shape) <= MAX_NDIM:
         dt = _DTYPES.get(dtype)
         if dt is not None:
@@ -603,11 +605,7 @@ def _wire_map(w: _WireArray, direct: bool = True) -> np.ndarray | dict[str, Any]
                 expected *= d
             else:
                 if expected and expected == len(data):
-                    if dtype != "uint8" or expected < VIEW_MIN_BYTES:
-                        data = bytes(data)
                     return np.frombuffer(data, dtype=dt).reshape(shape)
-    if dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
-        data = bytes(data)
     m = {"dtype": dtype, "shape": shape, "data": data}
     if w.codec is not msgspec.UNSET:
         m["codec"] = w.codec
