@@ -301,9 +301,6 @@ class FrameReplay:
             raise ValueError(f"frame_base must be an int >= 0, got {fb!r}")
         n = self._batch_size(c.batch, c.refs)
         p = None if c.priorities is None else _check_priorities(c.priorities, n, "priorities")
-        for f in c.refs:
-            if c.refs[f].shape[0] != n:
-                raise SpecMismatch(f"frame ids {f}: batch size {c.refs[f].shape[0]} differs from {n}")
         return n_f, n, p
 
     def _batch_size(self, batch: Mapping[str, np.ndarray], refs: Mapping[str, np.ndarray]) -> int:
@@ -451,7 +448,7 @@ class FrameReplay:
         floor = self._frames_total - self._fcap
         base, cnt, gb = hist.bases[-1], hist.counts[-1], hist.gbases[-1]
         if not ids.size:
-            return ids + 0, True
+            return ids.copy(), True
         lo, hi = int(ids.min()), int(ids.max())
         if lo >= base and hi < base + cnt:  # all in the newest chunk
             g = ids + (gb - base)

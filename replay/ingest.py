@@ -126,18 +126,12 @@ class Ingest:
         taken, held = 0, 0
         limit_n, limit_b = self.rcfg.ingest_batch_chunks, self.rcfg.queue_max_bytes
         cap = min(limit_n, self.inbox_capacity + 1)
-        waiting, size = [first], first.nbytes
+        waiting = [first]
+        size = self._take_waiting(waiting, first.nbytes, cap, limit_b)
         linger = self.rcfg.ingest_linger_s
-        for wait in ((False, True) if linger > 0 else (False,)):
-            if wait:  # a short batch: wait once for more (the stop's event ends the wait)
-                if len(waiting) >= cap or size >= limit_b or self.closing.wait(linger):
-                    break
-            while len(waiting) < cap and size < limit_b:
-                r = self.inbox.get_nowait()
-                if r is None:
-                    break
-                waiting.append(r)
-                size += r.nbytes
+        # a short batch waits once for more (the stop's event ends the wait)
+        if linger > 0 and len(waiting) < cap and size < limit_b and not self.closing.wait(linger):
+            size = self._take_waiting(waiting, size, cap, limit_b)
         for i, r in enumerate(waiting):
             item = self._take(r)
             waiting[i] = None  # a dropped chunk's buffer goes now
@@ -156,6 +150,17 @@ class Ingest:
                 held += len(item[0])
                 self.in_hand = taken
                 yield item
+
+    def _take_waiting(self, waiting: list[Any], size: int, cap: int, limit_b: int) -> int:
+        """Append what waits in the inbox to ``waiting`` (holding ``size`` bytes) while it has
+        fewer than ``cap`` chunks and ``limit_b`` bytes; returns the bytes it then holds."""
+        while len(waiting) < cap and size < limit_b:
+            r = self.inbox.get_nowait()
+            if r is None:
+                break
+            waiting.append(r)
+            size += r.nbytes
+        return size
 
     def _take(self, r: Any) -> tuple[bytes, str] | None:
         """A received chunk's ``(payload, key)``, or None when it is dropped unread: its source is
