@@ -7,7 +7,10 @@ fair per source (:class:`~zenrl.learner.fair_queue.FairQueue`: one FIFO per work
 round-robin; a full queue evicts the oldest message of the worker holding the most and counts it
 in ``queue_dropped`` and ``queue_dropped_from/<worker>``, so the sender is never stalled and a
 worker that floods pushes out only its own gradients; ``applied_from/<worker>`` and
-``stale_from/<worker>`` in the stats show each worker's share). The
+``stale_from/<worker>`` in the stats show each worker's share, and
+``queue_wait_turns_max_from/<worker>`` the most turns other workers took while one of its
+gradients waited, per gradient of its own ahead of it and itself: at most the number of other
+workers with gradients queued). The
 main loop decodes, validates and
 applies each gradient as it arrives with one shared optimizer (RMSProp by default for A3C, as in
 the A3C paper's shared RMSProp), with gradient-norm clipping, and broadcasts the parameters every
@@ -350,6 +353,7 @@ class A3CLearner(LearnerBase):
             "lr": self.applier.current_lr()}
         vals.update(self.rejects.as_values())
         vals.update(self._q.evicted_values())
+        vals.update(self._q.wait_values())
         vals.update({f"applied_from/{s}": n for s, n in self._applied_by.most_common(TOP_EVICTED)})
         vals.update({f"stale_from/{s}": n for s, n in self._stale_by.most_common(TOP_EVICTED)})
         line = None

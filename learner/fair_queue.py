@@ -11,6 +11,12 @@ A3C parameter server's gradients). Pure (no Zenoh), thread-safe, unit-tested.
 The source is the sender's name in the key (``gradients/<worker>``); a sender that rotates names
 still cannot grow the queue past ``max_items``. Counters (``counters``): ``queued``, ``taken``,
 ``evicted``; :meth:`FairQueue.evicted_values` names the :data:`TOP_EVICTED` sources evicted most.
+
+**Turns waited** (:meth:`FairQueue.wait_values`): for each message taken, the messages of other
+sources taken while it waited, divided by the messages of its own source it queued behind plus
+one (itself). Served round-robin, that is at most the number of other sources that had messages
+waiting; the queue keeps each source's largest. Unlike a source's share of all the turns, which
+grows with the turns a slow source leaves unused, it does not depend on how fast anyone sends.
 """
 
 from __future__ import annotations
@@ -35,12 +41,15 @@ class FairQueue(Generic[T]):
         if max_items < 1:
             raise ValueError(f"max_items must be >= 1, got {max_items}")
         self.max_items = max_items
-        self._fifos: dict[str, collections.deque[T]] = {}
+        #: per source: its messages (item, messages taken at put, its own taken at put, own ahead at put)
+        self._fifos: dict[str, collections.deque[tuple[T, int, int, int]]] = {}
+        self._own_taken: dict[str, int] = {}  # per source in _fifos: its messages taken so far
         self._turn: collections.deque[str] = collections.deque()  # round-robin order of the sources in _fifos
         self._count = 0
         self._cv = threading.Condition()
         self.counters: collections.Counter[str] = collections.Counter()
         self._evicted_by: collections.Counter[str] = collections.Counter()
+        self._wait_max: dict[str, float] = {}
 
     def __len__(self) -> int:
         return self._count
@@ -59,8 +68,9 @@ class FairQueue(Generic[T]):
             fifo = self._fifos.get(source)
             if fifo is None:
                 fifo = self._fifos[source] = collections.deque()
+                self._own_taken[source] = 0
                 self._turn.append(source)
-            fifo.append(item)
+            fifo.append((item, self.counters["taken"], self._own_taken[source], len(fifo)))
             self._count += 1
             self.counters["queued"] += 1
             self._cv.notify()
@@ -78,7 +88,13 @@ class FairQueue(Generic[T]):
                 self._cv.wait(left)
             source = self._turn[0]
             self._turn.rotate(-1)
+            _, taken_at_put, own_at_put, ahead = self._fifos[source][0]
+            others = (self.counters["taken"] - taken_at_put) - (self._own_taken[source] - own_at_put)
+            turns = others / (ahead + 1)
+            if source in self._wait_max or len(self._wait_max) < MAX_TRACKED:
+                self._wait_max[source] = max(self._wait_max.get(source, 0.0), turns)
             self.counters["taken"] += 1
+            self._own_taken[source] += 1
             return source, self._pop(source)
 
     def sizes(self) -> dict[str, int]:
@@ -92,6 +108,13 @@ class FairQueue(Generic[T]):
         with self._cv:
             return {f"{prefix}/{s}": n for s, n in self._evicted_by.most_common(TOP_EVICTED)}
 
+    def wait_values(self, prefix: str = "queue_wait_turns_max_from") -> dict[str, float]:
+        """``{prefix + "/<source>": turns}``: the largest turns waited (module docstring) of a
+        message of that source, for the :data:`TOP_EVICTED` sources with the largest."""
+        with self._cv:
+            top = sorted(self._wait_max.items(), key=lambda kv: -kv[1])[:TOP_EVICTED]
+            return {f"{prefix}/{s}": round(v, 3) for s, v in top}
+
     # -- under the lock --------------------------------------------------------------------
     def _biggest(self, putter: str) -> str:
         """The source holding the most messages; the putter wins ties (it evicts its own)."""
@@ -101,9 +124,10 @@ class FairQueue(Generic[T]):
 
     def _pop(self, source: str) -> T:
         fifo = self._fifos[source]
-        item = fifo.popleft()
+        item = fifo.popleft()[0]
         self._count -= 1
         if not fifo:
             del self._fifos[source]
+            del self._own_taken[source]
             self._turn.remove(source)
         return item

@@ -1,9 +1,10 @@
 """A3C under a flooding worker: the real A3C learner, an honest worker (CartPole, real envs) and
 a hostile worker (tests/integration/grad_flood.py) that sends gradients as fast as it can, some
 claiming 2**62 env steps or another worker's id, are separate OS processes behind a real router.
-The honest worker keeps getting its gradients applied (served in turns; a full queue evicts
-only the flood's own), its evicted and rejected messages are counted, and the learner's
-counters stay what the applied gradients say."""
+The honest worker keeps getting its gradients applied (served in turns: the flood takes at most
+one turn while an honest gradient waits; a full queue evicts only the flood's own), its evicted
+and rejected messages are counted, and the learner's counters stay what the applied gradients
+say."""
 
 import signal
 
@@ -44,14 +45,12 @@ def test_a_flooding_worker_cannot_starve_an_honest_one(router, run_id, procs, tm
                         v.get("queue_dropped_from/flood", 0) > 0 and v, 120, "the flood under way")
         s2 = wait_until(lambda: (v := stats()) and v["applied_from/honest"] >= s1["applied_from/honest"] + 100 and v,
                         180, "100 more honest gradients applied during the flood")
-        honest_d = s2["applied_from/honest"] - s1["applied_from/honest"]
-        flood_d = s2["applied_from/flood"] - s1["applied_from/flood"]
-        # served in turns, a flood that keeps its FIFO full waits behind its own messages, which
-        # go stale. Turns are fair, updates are not: the flood also takes the turns the honest
-        # worker leaves unused while it computes (docs/architecture.md), more so on a busy machine,
-        # so the bound is twice the honest share; a queue that dropped the newcomer on a full
-        # queue, as before, gave the flood 15 times the honest share
-        assert flood_d <= 2 * honest_d + 9, (flood_d, honest_d)
+        # served in turns: while an honest gradient waited, the flood took at most one turn per
+        # honest gradient ahead of it and itself, however deep the flood's backlog (a FIFO made it
+        # wait the whole queue). The flood's share of all the updates is not bounded: it also takes
+        # the turns the honest worker leaves unused while it computes, more of them the busier the
+        # machine (docs/architecture.md)
+        assert 0 < s2["queue_wait_turns_max_from/honest"] <= 1.0, s2
         # the flood was counted: evicted on the full queue, its lies rejected by reason
         assert s2["queue_dropped_from/flood"] > 0 and s2["queue_dropped"] >= s2["queue_dropped_from/flood"], s2
         assert s2["rejected_steps"] > 0 and s2["rejected_source"] > 0, s2

@@ -48,9 +48,11 @@ def test_a_flood_evicts_only_its_own_messages():
 
 
 def test_brute_force_reference_of_eviction_and_order():
-    """Random puts and gets against a plain reference model of the same rules."""
+    """Random puts and gets against a plain reference model of the same rules, turns waited
+    included (counted from the sequence of takes)."""
     rng = np.random.default_rng(0)
     q, ref, turn = FairQueue(7), {}, []
+    takes, put_at, wait_max = [], {}, {}  # sources in take order; step -> (len(takes), ahead)
     for step in range(3000):
         if rng.random() < 0.7:
             src = f"s{int(rng.integers(0, 4))}"
@@ -65,6 +67,7 @@ def test_brute_force_reference_of_eviction_and_order():
             if src not in ref:
                 ref[src] = []
                 turn.append(src)
+            put_at[step] = (len(takes), len(ref[src]))
             ref[src].append(step)
             q.put(src, step)
         else:
@@ -75,11 +78,39 @@ def test_brute_force_reference_of_eviction_and_order():
             src = turn.pop(0)
             turn.append(src)
             want = (src, ref[src].pop(0))
+            since, ahead = put_at[want[1]]
+            others = sum(s != src for s in takes[since:])
+            wait_max[src] = max(wait_max.get(src, 0.0), others / (ahead + 1))
+            takes.append(src)
             if not ref[src]:
                 del ref[src]
                 turn.remove(src)
             assert got == want, step
         assert q.sizes() == {s: len(v) for s, v in ref.items()}
+    want = {f"queue_wait_turns_max_from/{s}": round(v, 3) for s, v in wait_max.items()}
+    assert q.wait_values() == want
+    # round-robin: no message waited more than one turn of each of the 3 other sources per own ahead
+    assert max(want.values()) <= 3 and max(want.values()) >= 1
+
+
+def test_turns_waited_do_not_grow_with_a_flood():
+    """A quiet source's message waits one turn of the flood per message of its own ahead, however
+    deep the flood's backlog; a FIFO would have made it wait the whole backlog."""
+    q = FairQueue(100)
+    for i in range(90):
+        q.put("flood", i)
+    q.put("honest", 0)
+    q.put("honest", 1)
+    q.put("third", 0)
+    _drain(q)
+    w = q.wait_values()
+    # honest 0: flood 0 ahead of it (1 turn, nothing of its own); honest 1: flood 0, third 0,
+    # flood 1 (3 turns, 1 of its own ahead: 1.5); third: flood 0 and honest 0 (2 turns)
+    assert w["queue_wait_turns_max_from/honest"] == 1.5
+    assert w["queue_wait_turns_max_from/third"] == 2.0
+    # flood 1: honest 0 and third 0 ahead, behind 1 of its own (1.0); flood 2: those and honest 1,
+    # behind 2 of its own (1.0); later ones waited behind the same 3 and more of their own
+    assert w["queue_wait_turns_max_from/flood"] == 1.0
 
 
 def test_get_waits_for_a_put_and_times_out():
