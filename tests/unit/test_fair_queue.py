@@ -165,7 +165,6 @@ def test_the_learner_serves_a_quiet_worker_between_a_floods_messages(tmp_path):
     assert "honest" in first  # served within one round, not after the flood
 
 
-
 def test_future_version_claims_move_the_version_boundedly(tmp_path):
     """A worker claiming versions ahead of the learner's (legitimate only after a restart from an
     older checkpoint) makes it resync at most once per max_staleness + 1 applied gradients and

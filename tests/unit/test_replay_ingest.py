@@ -175,7 +175,6 @@ def test_close_inserts_what_was_waiting_in_the_inbox(monkeypatch):
     assert not any(t.is_alive() for t in sup.threads)
 
 
-
 class _Closing:
     """The ingest's stop event, whose timed wait stands for the linger: it records each wait
     and puts ``arrive`` into the inbox during it, as Zenoh's receive thread would."""
