@@ -72,6 +72,9 @@ class FrameChunk:
     batch: Mapping[str, np.ndarray]
     refs: Mapping[str, np.ndarray]
     priorities: np.ndarray | None = None
+    #: ``{field: (min id, max id)}`` of ``refs``, exactly, where the caller has them already
+    #: (:meth:`~zenrl.common.protocol.TransitionBatch.frame_id_bounds`); None: found here
+    bounds: Mapping[str, tuple[int, int]] | None = None
 
 
 @dataclass(frozen=True)
@@ -355,7 +358,7 @@ class FrameReplay:
             gk = {}
             complete = True  # every id resolved (the common case: no -1 to look for)
             for f, ids in c.refs.items():
-                g, whole = self._resolve(hist, np.asarray(ids, np.int64))
+                g, whole = self._resolve(hist, np.asarray(ids, np.int64), None if c.bounds is None else c.bounds.get(f))
                 gk[f] = g.reshape(n, self._ref_width[f])
                 complete &= whole
             ok = None
@@ -440,16 +443,16 @@ class FrameReplay:
                 ring[:n_f - n1] = src[n1:]
         self._frames_total += n_f
 
-    def _resolve(self, hist: _History, ids: np.ndarray) -> tuple[np.ndarray, bool]:
+    def _resolve(self, hist: _History, ids: np.ndarray, bounds: tuple[int, int] | None = None) -> tuple[np.ndarray, bool]:
         """Stream frame ids -> global frame keys (``-1`` where no stored frame has that id), and
-        whether every id resolved."""
+        whether every id resolved. ``bounds``: ``(ids.min(), ids.max())`` if known."""
         if not hist.bases:
             return np.full(ids.shape, -1, np.int64), not ids.size
         floor = self._frames_total - self._fcap
         base, cnt, gb = hist.bases[-1], hist.counts[-1], hist.gbases[-1]
         if not ids.size:
             return ids.copy(), True
-        lo, hi = int(ids.min()), int(ids.max())
+        lo, hi = bounds if bounds is not None else (int(ids.min()), int(ids.max()))
         if lo >= base and hi < base + cnt:  # all in the newest chunk
             g = ids + (gb - base)
             if lo + (gb - base) >= floor:  # and that chunk's frames are all still in the ring

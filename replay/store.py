@@ -230,7 +230,8 @@ class FrameStore:
         for c in chunks:
             refs = c.msg.frame_refs()
             batch = {k: v for k, v in c.data.items() if k not in refs}
-            fcs.append(FrameChunk(c.stream, c.msg.frame_base, c.msg.frames, batch, refs, c.msg.priorities))
+            fcs.append(FrameChunk(c.stream, c.msg.frame_base, c.msg.frames, batch, refs, c.msg.priorities,
+                                  c.msg.frame_id_bounds()))
         return [r if isinstance(r, Exception) else Stored(r.keys, r.dropped) for r in self.buffer.insert_many(fcs)]
 
     def stats(self) -> dict[str, Any]:

@@ -191,7 +191,10 @@ def run_stream(seed: int, n_actors: int, E: int, n: int, k: int, chunk_steps: in
             except SpecMismatch as e:
                 results = [e]
         else:
-            results = store.insert_many([FrameChunk(c["stream"], c["base"], c["frames"], c["batch"], c["refs"])
+            # with the ids' bounds given, as the service's ingest gives the decode's (found here
+            # by plain Python, not numpy); one chunk at a time, the replay finds them itself
+            results = store.insert_many([FrameChunk(c["stream"], c["base"], c["frames"], c["batch"], c["refs"],
+                                                    bounds={f: (min(v.flat), max(v.flat)) for f, v in c["refs"].items() if v.size})
                                          for c in pending])
         assert len(results) == len(pending)
         for c, res in zip(pending, results):

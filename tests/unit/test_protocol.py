@@ -172,6 +172,23 @@ def test_the_view_reader_s_plain_arrays_are_what_the_array_check_makes_of_them()
     assert _outcome(lambda: P.TransitionBatch.decode(msg.encode()))[0] == "ok"
 
 
+def test_frame_id_bounds_are_the_ids_extremes_decoded_or_built():
+    """The decode's id check records each frame-id field's smallest and largest id (the replay's
+    insert reads them instead of reducing the ids again); a message built here finds the same."""
+    rng = np.random.default_rng(3)
+    frames = np.zeros((40, 84, 84), np.uint8)
+    obs = rng.integers(10, 50, (8, 4)).astype(np.int64)
+    nxt = np.array([12, 49, 30, 11, 10, 33, 48, 20], np.int64)
+    msg = P.TransitionBatch("actor-1", 7, 3, {"obs": obs, "next_obs": nxt, "r": np.zeros(8, np.float32)},
+                            np.ones(8, np.float32), frames={"obs": frames}, frame_base=10)
+    want = {"obs": (min(obs.flat), max(obs.flat)), "next_obs": (10, 49)}
+    got = P.TransitionBatch.decode(msg.encode())
+    assert got.frame_id_bounds() == want
+    assert msg.frame_id_bounds() == want
+    got.frame_id_bounds()["obs"] = (0, 0)  # a copy: the message's own stay
+    assert got.frame_id_bounds() == want
+
+
 def test_types_whose_precheck_reads_array_maps_get_maps_from_the_view_reader():
     """A type that reads its envelope's array maps before the checks (an unroll's declared
     steps) must see maps: only types with the base ``_precheck`` take arrays already made."""
