@@ -673,6 +673,105 @@ def _as_msgpack_reads(values: list[Any]) -> bool:
     return True
 
 
+class _TransitionsEnvelope(msgspec.Struct, forbid_unknown_fields=True):
+    """A :class:`TransitionBatch` as every honest actor sends it, typed field by field for
+    :func:`_decode_transitions_plain`; a message of any other form fails to read as this and
+    goes the general way."""
+
+    v: int
+    t: str
+    actor_id: str
+    policy_version: int
+    seq: int
+    data: dict[str, _WireArray]
+    priorities: Union[_WireArray, None] = None
+    frames: Union[dict[str, _WireArray], None] = None
+    frame_base: Union[int, None] = None
+
+
+_TRANSITIONS_DECODER = msgspec.msgpack.Decoder(_TransitionsEnvelope)
+
+
+def _plain_array(w: _WireArray) -> np.ndarray | None:
+    """:func:`_wire_map` of a plain wire array (known dtype, at most MAX_NDIM dimensions whose
+    bytes the data holds exactly, not empty, not compressed), as the array; None for any other
+    (the general decoder then words what is wrong)."""
+    if w.codec is not msgspec.UNSET or w.size is not msgspec.UNSET:
+        return None
+    dt = _DTYPES.get(w.dtype)
+    shape = w.shape
+    if dt is None or len(shape) > MAX_NDIM:
+        return None
+    data = w.data
+    n = dt.itemsize
+    for d in shape:
+        if d < 0:
+            return None
+        n *= d
+    if not n or n != len(data):
+        return None
+    if n < VIEW_MIN_BYTES or w.dtype != "uint8":
+        data = bytes(data)  # aligned, and cheaper than a view on a short array
+    return np.frombuffer(data, dtype=dt).reshape(shape)
+
+
+def _plain_arrays(m: dict[str, _WireArray]) -> dict[str, np.ndarray] | None:
+    if not m or len(m) > MAX_FIELDS:
+        return None
+    out = {}
+    for k, w in m.items():
+        if k not in _good_field_names:
+            if not _FIELD_RE.match(k):
+                return None
+            _check_field_name("", k)  # remembers it, as the general way does
+        a = _plain_array(w)
+        if a is None:
+            return None
+        out[k] = a
+    return out
+
+
+def _decode_transitions_plain(payload: Any, max_bytes: int) -> "TransitionBatch | None":
+    """The short way to a :class:`TransitionBatch` (every chunk an honest actor sends): the
+    envelope read by one typed msgspec decoder, the arrays made straight from its views, then
+    the message's own checks (:meth:`TransitionBatch._validate`). None for anything off that
+    form (a field of another type, an unknown or missing field, a compressed, empty or
+    malformed array, a name or number out of its rule): :meth:`Message.decode` then takes the
+    general way, which accepts or refuses it with the reason. It never accepts what the general
+    way refuses, and gives the same message for what both accept
+    (tests/unit/test_protocol.py compares the two on every mutation of a chunk)."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) > max_bytes:
+        return None
+    try:
+        s = _TRANSITIONS_DECODER.decode(payload)
+    except Exception:  # noqa: BLE001 - msgspec raises several types; the general way words it
+        return None
+    if s.v != PROTOCOL_VERSION or s.t != TransitionBatch.TYPE or not _NAME_RE.match(s.actor_id):
+        return None
+    lo, hi = INT_RANGES["int"]
+    if not (lo <= s.policy_version <= hi and 0 <= s.seq <= INT64_MAX):
+        return None
+    fb = s.frame_base
+    if fb is not None and not 0 <= fb <= MAX_FRAME_ID:
+        return None
+    data = _plain_arrays(s.data)
+    if data is None:
+        return None
+    prio = None
+    if s.priorities is not None:
+        prio = _plain_array(s.priorities)
+        if prio is None:
+            return None
+    frames = None
+    if s.frames is not None:
+        frames = _plain_arrays(s.frames)
+        if frames is None:
+            return None
+    msg = TransitionBatch(s.actor_id, s.policy_version, s.seq, data, prio, frames, fb)
+    msg._validate()  # raises ProtocolError: refused here as the general way would refuse it
+    return msg
+
+
 def decode_any(payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, limits: DecodeLimits | None = None) -> Message:
     """Decode a message of any registered type."""
     env = _unpack(payload, max_bytes)
@@ -826,6 +925,14 @@ class TransitionBatch(Message):
     priorities: np.ndarray | None = None
     frames: dict[str, np.ndarray] | None = None
     frame_base: int | None = None
+
+    @classmethod
+    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+               limits: DecodeLimits | None = None) -> "TransitionBatch":
+        """As :meth:`Message.decode`; a chunk of the form every honest actor sends takes a
+        shorter way there (:func:`_decode_transitions_plain`, about half the Python work)."""
+        msg = _decode_transitions_plain(payload, max_bytes)
+        return msg if msg is not None else super().decode(payload, max_bytes, limits)
 
     def frame_refs(self) -> dict[str, np.ndarray]:
         """The data fields that are frame ids (empty outside frame mode)."""

@@ -172,6 +172,80 @@ def test_the_view_reader_s_plain_arrays_are_what_the_array_check_makes_of_them()
     assert _outcome(lambda: P.TransitionBatch.decode(msg.encode()))[0] == "ok"
 
 
+def _frame_chunk(big: bool) -> P.TransitionBatch:
+    rng = np.random.default_rng(5)
+    side = 84 if big else 8
+    obs = np.arange(6, dtype=np.int64)[:, None] + np.arange(4)
+    return P.TransitionBatch("actor-1", 7, 3, {"obs": obs, "next_obs": obs + 3, "action": np.arange(6, dtype=np.int64),
+                                               "reward": rng.random(6).astype(np.float32), "terminated": np.zeros(6, bool)},
+                             np.ones(6, np.float32), frames={"obs": rng.integers(0, 256, (12, side, side), dtype=np.uint8)},
+                             frame_base=20)
+
+
+def _chunk_edits():
+    """Edits of a chunk's envelope, each one rule of the general decoder's (or none)."""
+    arr = lambda dtype, shape, data: {"dtype": dtype, "shape": shape, "data": data}  # noqa: E731
+    ids = lambda a: arr("int64", list(a.shape), a.astype(np.int64).tobytes())  # noqa: E731
+    obs = np.arange(6)[:, None] + np.arange(4)
+    return [
+        ("v", 2), ("v", "1"), ("v", 1.0), ("t", "sample_reply"), ("actor_id", "bad name!"), ("actor_id", ""),
+        ("actor_id", "a" * 65), ("actor_id", "ok\n"), ("actor_id", 5), ("policy_version", 2**63),
+        ("policy_version", -(2**63)), ("policy_version", True), ("policy_version", 1.0), ("seq", -1), ("seq", 2**63 - 1),
+        ("seq", 2**64 - 1), ("frame_base", -1), ("frame_base", P.MAX_FRAME_ID), ("frame_base", None), ("frame_base", 0),
+        ("frames", None), ("frames", {}), ("priorities", None), ("priorities", arr("float32", [5], b"\0" * 20)),
+        ("priorities", arr("float32", [6], np.full(6, -1, np.float32).tobytes())),
+        ("priorities", arr("float64", [6], np.full(6, np.nan).tobytes())), ("priorities", arr("float32", [6, 1], b"\0" * 24)),
+        ("priorities", arr("int64", [6], b"\0" * 48)), ("extra", 1), ("data", {}), ("data", 5),
+        ("data.bad key!", arr("int64", [6], b"\0" * 48)), ("data." + "k" * 129, arr("int64", [6], b"\0" * 48)),
+        ("data.x", arr("uint9", [6], b"\0" * 6)), ("data.x", arr("int64", [-6], b"")), ("data.x", arr("int64", [6], b"\0" * 47)),
+        ("data.x", arr("int64", [6, True], b"\0" * 48)), ("data.x", arr("float32", [6], np.full(6, np.inf, np.float32).tobytes())),
+        ("data.x", arr("int64", [0], b"")), ("data.x", arr("int64", [0, 2**40], b"")), ("frames.obs", arr("uint8", [0, 2**40], b"")), ("data.x", arr("int64", [7], b"\0" * 56)), ("data.x", {**arr("int64", [6], b"\0" * 48), "zz": 1}),
+        ("data.x", arr("int64", [6], "text")), ("data.x", arr("int64", [1] * 9, b"\0" * 8)), ("data.x", arr("int64", [6], b"\0" * 48)),
+        ("data.obs", ids(obs + 100)), ("data.obs", ids(obs - 30)), ("data.obs", arr("int32", [6, 4], obs.astype(np.int32).tobytes())),
+        ("data.obs", ids(obs[:, :1].reshape(6))), ("data.next_obs", ids(np.zeros((6, 1, 1, 1), np.int64))),
+        ("frames.obs", arr("uint8", [11, 8, 8], b"\0" * 704)), ("frames.next", arr("uint8", [12, 8, 8], b"\0" * 768)),
+        ("frames.obs", arr("float32", [12, 1], np.full(12, np.nan, np.float32).tobytes())),
+        ("frames.obs", {"dtype": "uint8", "shape": [12, 8, 8], "data": b"\0" * 9, "codec": "lz4", "size": 768}),
+    ]
+
+
+@pytest.mark.parametrize("big", [False, True], ids=["small", "views"])
+def test_the_chunk_short_way_accepts_and_refuses_as_the_general_way(big):
+    """:func:`_decode_transitions_plain` (the short way every honest chunk takes) against the
+    envelope read by msgpack and checked by the general decoder, on edits that each break one
+    rule: it gives the same message, the same rejection, or leaves the chunk to the general way
+    (None); ``TransitionBatch.decode`` then agrees with the general decoder on every edit. And an
+    honest chunk does take it."""
+    msg = _frame_chunk(big)
+    assert P._decode_transitions_plain(msg.encode(), P.DEFAULT_MAX_MESSAGE_BYTES) is not None
+    short_ok = 0
+    for key, value in [(None, None), *_chunk_edits()]:
+        env = msgpack.unpackb(msg.encode(), raw=False)
+        if key is not None:
+            where, _, name = key.partition(".")
+            target = env if not name else env.setdefault(where, {}) if isinstance(env.get(where), dict) else env
+            if not name:
+                env[where] = value
+            elif isinstance(target, dict):
+                target[name] = value
+        payload = msgpack.packb(env, use_bin_type=True)
+        want = _outcome(lambda: _read_by_msgpack(P.TransitionBatch, payload))
+        short = _outcome(lambda: P._decode_transitions_plain(payload, P.DEFAULT_MAX_MESSAGE_BYTES))
+        got = _outcome(lambda: P.TransitionBatch.decode(payload))
+        assert want[0] == got[0] and (want[0] == "ok" or want[1:] == got[1:]), (key, value, want, got)
+        if short[0] == "rejected":
+            assert want[1:] == short[1:], (key, value, want, short)
+        elif short[1] is not None:
+            short_ok += 1
+            assert want[0] == "ok", (key, value, want)
+            for f in msg.__dataclass_fields__:
+                assert _eq(getattr(want[1], f), getattr(short[1], f)), (key, f)
+        if want[0] == "ok":
+            for f in msg.__dataclass_fields__:
+                assert _eq(getattr(want[1], f), getattr(got[1], f)), (key, f)
+    assert short_ok >= 5, "the short way took almost none of the well-formed chunks"
+
+
 def test_frame_id_bounds_are_the_ids_extremes_decoded_or_built():
     """The decode's id check records each frame-id field's smallest and largest id (the replay's
     insert reads them instead of reducing the ids again); a message built here finds the same."""
