@@ -39,6 +39,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from zenrl.common.errors import NotReady, SpecMismatch
+from zenrl.common.protocol import VIEW_MIN_BYTES, Rows
 from zenrl.common.specs import ArraySpec, Spec, spec_nbytes
 from zenrl.replay.sumtree import SumTree
 
@@ -46,6 +47,9 @@ logger = logging.getLogger(__name__)
 
 #: Version tag written into :meth:`InMemoryReplay.state_dict`.
 STATE_FORMAT = "zenrl.replay.InMemoryReplay/1"
+#: ``sample(rows=True)``: a field this large a batch is left as rows, gathered by the reply's
+#: encode into its payload (smaller ones cost less gathered at once)
+ROWS_MIN_BYTES = VIEW_MIN_BYTES
 
 
 class ReplayEmpty(NotReady):
@@ -472,6 +476,7 @@ class InMemoryReplay:
         beta: float,
         rng: np.random.Generator | None = None,
         out: Mapping[str, np.ndarray] | None = None,
+        rows: bool = False,
     ) -> SampleBatch:
         """Draw ``batch_size`` items (with replacement).
 
@@ -487,6 +492,9 @@ class InMemoryReplay:
                 dtype) to gather into; ``SampleBatch.data`` then holds these very arrays.
                 Reusing buffers avoids page-faulting fresh memory on every call, which
                 dominates for large (image) items.
+            rows: (without ``out``) fields of at least ``ROWS_MIN_BYTES`` a batch come back
+                as :class:`~zenrl.common.protocol.Rows` of the storage, to be gathered by
+                the reply's encode into its payload; the caller holds off inserts until then.
 
         Raises:
             ReplayEmpty: the buffer is empty (or every stored priority is 0 with ``eps=0``).
@@ -525,7 +533,8 @@ class InMemoryReplay:
             # ndarray.take(axis=0) is several times faster than fancy indexing for item rows
             # with more than one element; for 1-D fields fancy indexing is marginally faster.
             data = {
-                name: (arr.take(slots, axis=0, mode="clip") if arr.ndim > 1 else arr[slots])
+                name: (Rows(arr, slots, (b, *arr.shape[1:])) if rows and arr.ndim > 1 and arr[0].nbytes * b >= ROWS_MIN_BYTES
+                       else arr.take(slots, axis=0, mode="clip") if arr.ndim > 1 else arr[slots])
                 for name, arr in self._data.items()
             }
         else:

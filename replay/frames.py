@@ -43,7 +43,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from zenrl.common.errors import SpecMismatch
-from zenrl.common.protocol import frame_table
+from zenrl.common.protocol import Rows, frame_table
 from zenrl.common.specs import ArraySpec, Spec, spec_nbytes
 from zenrl.replay.buffer import InMemoryReplay, SampleBatch, _check_priorities
 
@@ -490,8 +490,11 @@ class FrameReplay:
         self._inner.start_at(first_key)
 
     # ------------------------------------------------------------------ sampling
-    def sample(self, batch_size: int, beta: float, rng: np.random.Generator | None = None) -> SampleBatch:
-        """As :meth:`InMemoryReplay.sample`; frame fields come back as images/stacks."""
+    def sample(self, batch_size: int, beta: float, rng: np.random.Generator | None = None,
+               rows: bool = False) -> SampleBatch:
+        """As :meth:`InMemoryReplay.sample`; frame fields come back as images/stacks, or with
+        ``rows`` as :class:`~zenrl.common.protocol.Rows` of the frame rings, gathered when the
+        reply is encoded (the caller holds off inserts until then)."""
         s = self._inner.sample(batch_size, beta, rng)
         data: dict[str, Any] = {}
         for k, v in s.data.items():
@@ -502,6 +505,8 @@ class FrameReplay:
         for f, shape in self._ref_shape.items():
             ring = self._frames[frame_table(f)]
             slots = s.data[GKEY_PREFIX + f].reshape(-1) % cap
-            imgs = ring.take(slots, axis=0, mode="clip")
-            data[f] = imgs.reshape((b, *shape, *ring.shape[1:]))
+            if rows:
+                data[f] = Rows(ring, slots, (b, *shape, *ring.shape[1:]))
+            else:
+                data[f] = ring.take(slots, axis=0, mode="clip").reshape((b, *shape, *ring.shape[1:]))
         return SampleBatch(keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=data)

@@ -122,30 +122,45 @@ class Sampler:
                 return f"samples_per_insert {spi} reached ({self.sampled_items} sampled, {b.inserts_total} inserted)"
         return ""
 
-    def on_sample(self, payload: bytes) -> bytes:
+    def on_sample(self, payload: bytes) -> bytes | bytearray:
         """The queryable's handler: a request's bytes -> the reply's bytes."""
         try:
             req = P.SampleRequest.decode(payload, self.max_bytes)
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), self.sample_key)
             return P.SampleReply(request_id=0, status="not_ready", reason=f"bad request: {e}").encode()
-        return self.reply(req).encode(self.max_bytes)
+        with self.lock:
+            rep = self._reply(req, rows=True)
+            # a frame replay's reply names rows of its rings (P.Rows): they are gathered into
+            # the payload while the lock still keeps the ingest from overwriting them
+            payload = rep.encode(self.max_bytes)
+        if rep.status == "ok":
+            self.sampled.add(1)
+        return payload
 
     def reply(self, req: P.SampleRequest) -> P.SampleReply:
+        """The reply to ``req``, its arrays gathered."""
         with self.lock:
-            why = self.readiness(req.batch_size)
-            b = self.buffer()
-            size = 0 if b is None else b.size
-            # the mass the probabilities are fractions of, in both replies: a learner sampling
-            # across shards weighs this shard by it (common/replay_client.py)
-            mass = 0.0 if b is None else b.priority_mass
-            if why:
-                self.not_ready_replies += 1
-                return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size,
-                                     mass=mass)
-            s = b.sample(req.batch_size, req.beta, self.rng)
-            self.sampled_items += req.batch_size
-        self.sampled.add(1)
+            rep = self._reply(req, rows=False)
+        if rep.status == "ok":
+            self.sampled.add(1)
+        return rep
+
+    def _reply(self, req: P.SampleRequest, rows: bool) -> P.SampleReply:
+        """(caller holds the lock) ``rows``: large fields as P.Rows of the storage, to be encoded
+        before the lock is let go."""
+        why = self.readiness(req.batch_size)
+        b = self.buffer()
+        size = 0 if b is None else b.size
+        # the mass the probabilities are fractions of, in both replies: a learner sampling
+        # across shards weighs this shard by it (common/replay_client.py)
+        mass = 0.0 if b is None else b.priority_mass
+        if why:
+            self.not_ready_replies += 1
+            return P.SampleReply(request_id=req.request_id, status="not_ready", reason=why, replay_size=size,
+                                 mass=mass)
+        s = b.sample(req.batch_size, req.beta, self.rng, rows=rows)
+        self.sampled_items += req.batch_size
         return P.SampleReply(request_id=req.request_id, status="ok", replay_size=size,
                              keys=s.keys, probabilities=s.probabilities, weights=s.weights, data=s.data, mass=mass)
 
