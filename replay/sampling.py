@@ -129,10 +129,14 @@ class Sampler:
         except ProtocolError as e:
             self.rejects.reject(e.reason, str(e), self.sample_key)
             return P.SampleReply(request_id=0, status="not_ready", reason=f"bad request: {e}").encode()
+        payload = None
         with self.lock:
             rep = self._reply(req, rows=True)
-            # a frame replay's reply names rows of its rings (P.Rows): they are gathered into
-            # the payload while the lock still keeps the ingest from overwriting them
+            if rep.data is not None and any(type(v) is P.Rows for v in rep.data.values()):
+                # rows of the storage (P.Rows): gathered into the payload while the lock still
+                # keeps the ingest from overwriting them
+                payload = rep.encode(self.max_bytes)
+        if payload is None:  # arrays of its own: encoded without holding up the ingest
             payload = rep.encode(self.max_bytes)
         if rep.status == "ok":
             self.sampled.add(1)
