@@ -683,26 +683,18 @@ VIEW_MIN_BYTES = 64 * 1024
 def _wire_map(w: _WireArray, direct: bool = True) -> np.ndarray | dict[str, Any]:
     """A wire array as msgspec read it -> with ``direct`` (the message type's
     :attr:`Message.DIRECT_ARRAYS`), the array :func:`decode_array` would make of it when it is a
-    plain one that function accepts (known dtype, a shape of at most :data:`MAX_NDIM` dimensions
-    whose bytes the data holds exactly, not empty, not compressed: what every honest chunk
-    sends); otherwise the map msgpack would have given, which ``decode_array`` checks and, if
-    it must, refuses with the reason. The short cut skips building the map and reading it
-    back, a few microseconds per array."""
-    dtype, shape, data = w.dtype, w.shape, w.data
-    if dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
+    plain one that function accepts (:func:`_plain_array`: what every honest chunk sends);
+    otherwise the map msgpack would have given, which ``decode_array`` checks and, if it must,
+    refuses with the reason. The short cut skips building the map and reading it back, a few
+    microseconds per array."""
+    if direct:
+        a = _plain_array(w)
+        if a is not None:
+            return a
+    data = w.data
+    if w.dtype != "uint8" or len(data) < VIEW_MIN_BYTES:
         data = bytes(data)
-    if direct and w.codec is msgspec.UNSET and w.size is msgspec.UNSET and len(shape) <= MAX_NDIM:
-        dt = _DTYPES.get(dtype)
-        if dt is not None:
-            expected = dt.itemsize
-            for d in shape:
-                if d < 0:
-                    break
-                expected *= d
-            else:
-                if expected and expected == len(data):
-                    return np.frombuffer(data, dtype=dt).reshape(shape)
-    m = {"dtype": dtype, "shape": shape, "data": data}
+    m = {"dtype": w.dtype, "shape": w.shape, "data": data}
     if w.codec is not msgspec.UNSET:
         m["codec"] = w.codec
     if w.size is not msgspec.UNSET:
