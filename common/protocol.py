@@ -781,9 +781,9 @@ _TRANSITIONS_DECODER = msgspec.msgpack.Decoder(_TransitionsEnvelope)
 
 
 def _plain_array(w: _WireArray) -> np.ndarray | None:
-    """:func:`_wire_map` of a plain wire array (known dtype, at most MAX_NDIM dimensions whose
-    bytes the data holds exactly, not empty, not compressed), as the array; None for any other
-    (the general decoder then words what is wrong)."""
+    """A plain wire array (known dtype, at most MAX_NDIM dimensions whose bytes the data holds
+    exactly, not empty, not compressed) as the array :func:`decode_array` would make of it; None
+    for any other (the general decoder then words what is wrong)."""
     if w.codec is not msgspec.UNSET or w.size is not msgspec.UNSET:
         return None
     dt = _DTYPES.get(w.dtype)
@@ -808,10 +808,10 @@ def _plain_arrays(m: dict[str, _WireArray]) -> dict[str, np.ndarray] | None:
         return None
     out = {}
     for k, w in m.items():
-        if k not in _good_field_names:
-            if not _FIELD_RE.match(k):
-                return None
-            _check_field_name("", k)  # remembers it, as the general way does
+        try:
+            _check_field_name("", k)
+        except ProtocolError:
+            return None
         a = _plain_array(w)
         if a is None:
             return None
