@@ -26,7 +26,7 @@ pytestmark = pytest.mark.integration
 B = 16
 #: replay.max_chunk_bytes at its default: what the barrage's messages are sized to (the replay's
 #: session takes no larger message; the memory bound scales with it, see docs/architecture.md)
-MAX_MESSAGE = 16 * 1024 * 1024
+MAX_MESSAGE = 4 * 1024 * 1024
 
 
 def _chunk(b, rng, bad_action=False):
@@ -165,11 +165,13 @@ def test_each_attack_class_is_counted_and_memory_stays_bounded(router, run_id, p
         cap = MAX_MESSAGE
         rows = (cap - 4096) // 46  # 46 bytes a transition
         filler = node.publisher(keys.transitions("filler"))
-        full = P.TransitionBatch("filler", 0, 0, _chunk(capacity // 8, rng)).encode(cap)
-        for i in range(8):  # one at a time: none is dropped by a full queue on a loaded machine
+        parts = -(-capacity // rows)  # chunks under the cap that fill the storage
+        per = -(-capacity // parts)
+        full = P.TransitionBatch("filler", 0, 0, _chunk(per, rng)).encode(cap)
+        for i in range(parts):  # one at a time: none is dropped by a full queue on a loaded machine
             filler.put(full)
-            wait_until(lambda: latest().get("inserted_total", 0) >= honest_chunks * 64 + (i + 1) * (capacity // 8), 60,
-                       f"filler chunk {i + 1} inserted")
+            wait_until(lambda: latest().get("inserted_total", 0) >= honest_chunks * 64 + (i + 1) * per,
+                       60, f"filler chunk {i + 1} inserted")
         s = wait_until(lambda: (v := latest()).get("size") == capacity and v, 30, "the storage full")
         steady = _mem(replay.pid)["VmRSS"]
         with open(f"/proc/{replay.pid}/clear_refs", "w") as f:

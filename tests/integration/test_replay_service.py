@@ -68,7 +68,7 @@ def test_ingest_sample_update_and_reject(router, run_id, procs):
                                              "action": np.zeros(3, np.int64), "reward": np.zeros(3, np.float32),
                                              "next_obs": np.zeros((3, 4), np.float32), "terminated": np.zeros(3, bool),
                                              "n": np.ones(3, np.uint8)}).encode(),
-            b"x" * (20 * 1024 * 1024),  # above replay.max_chunk_bytes (16 MiB), under twice it: refused, counted
+            b"x" * (6 * 1024 * 1024),  # above replay.max_chunk_bytes (4 MiB), under twice it: refused, counted
         ]
         for payload in bad_payloads:
             raw.put(payload)

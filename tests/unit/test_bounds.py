@@ -284,7 +284,7 @@ def test_the_inbox_holds_what_queue_max_bytes_takes_of_the_largest_chunks():
     assert _service(checker=False, queue_max_bytes=100_000, max_chunk_bytes=30_000).ingestor.inbox_capacity == 3
     assert _service(checker=False, queue_max_bytes=100_000, max_chunk_bytes=200_000).ingestor.inbox_capacity == 1
     assert _service(checker=False, queue_size=2, queue_max_bytes=100_000, max_chunk_bytes=1024).ingestor.inbox_capacity == 2
-    assert _service(checker=False).ingestor.inbox_capacity == 16  # the defaults: 256 MiB over 16 MiB
+    assert _service(checker=False).ingestor.inbox_capacity == 64  # the defaults: 256 MiB over 4 MiB
     # the transport's cap, when lower, is the chunk cap
     svc = ReplayService(load_config(None, ["replay.queue_max_bytes=100000", "replay.max_chunk_bytes=200000",
                                            "transport.max_message_bytes=50000"], environ={}), node=None, run_id="r")
