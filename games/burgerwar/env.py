@@ -116,6 +116,12 @@ class BurgerWarEnv(gym.Env):
         enemy_seen]); vector variant only.
       match_time (180), sudden_death_time (60), call_diff (10): judge rules.
       win_bonus (5.0): terminal +-bonus of the zero_sum reward.
+      face_penalty (0.0), face_radius (1.2 m), face_angle (15 deg): a shaping term added to any
+        reward (component ``facing``): ``face_penalty`` (<= 0) on each step that ends with the
+        other robot seen by the enemy detector (needs ``enemy_detector``) nearer than
+        ``face_radius`` and more than ``face_angle`` off the heading, where its camera can reach
+        the robot's side and back markers. It teaches a policy to face a robot that comes close
+        (docs/burgerwar.md, "Rewards"); 0 leaves the reward as it was.
       wall_dist (0.2 m), wall_penalty (-0.5), far_dist (1.0 m), far_penalty (-0.5): the users'
         reward penalties (robot closer than wall_dist to the arena wall; farther than far_dist
         from the centre).
@@ -163,7 +169,8 @@ class BurgerWarEnv(gym.Env):
                  lidar_noise: float = 0.01, privileged: bool = False, enemy_detector: bool = False,
                  flatten_obs: bool = False,
                  match_time: float = 180.0, sudden_death_time: float = 60.0, call_diff: int = 10,
-                 win_bonus: float = 5.0, wall_dist: float = 0.2, wall_penalty: float = -0.5,
+                 win_bonus: float = 5.0, face_penalty: float = 0.0, face_radius: float = 1.2,
+                 face_angle: float = 15.0, wall_dist: float = 0.2, wall_penalty: float = -0.5,
                  far_dist: float = 1.0, far_penalty: float = -0.5, start_noise: float = 0.0,
                  render_size: int = 256, max_steps: int | None = None,
                  marker_values: str = "unit", lidar_invalid: str = "clip",
@@ -200,6 +207,16 @@ class BurgerWarEnv(gym.Env):
         self.enemy_detector = bool(enemy_detector)
         self.flatten_obs = bool(flatten_obs)
         self.win_bonus = float(win_bonus)
+        self.face_penalty, self.face_radius = float(face_penalty), float(face_radius)
+        if not (math.isfinite(self.face_penalty) and self.face_penalty <= 0.0):
+            raise ValueError(f"face_penalty must be a finite number <= 0 (got {face_penalty!r})")
+        if self.face_penalty and not enemy_detector:
+            raise ValueError("face_penalty needs enemy_detector=True: it is paid on what the detector sees")
+        if not (math.isfinite(self.face_radius) and self.face_radius > 0.0 and 0.0 <= float(face_angle) < 180.0):
+            raise ValueError(f"face_radius must be > 0 m and face_angle in [0, 180) degrees "
+                             f"(got {face_radius!r}, {face_angle!r})")
+        self._face_cos = math.cos(math.radians(float(face_angle)))
+        self._agent_seen = np.zeros(3, np.float32)
         self.wall_dist, self.wall_penalty = float(wall_dist), float(wall_penalty)
         self.far_dist, self.far_penalty = float(far_dist), float(far_penalty)
         self.start_noise = float(start_noise)
@@ -512,6 +529,8 @@ class BurgerWarEnv(gym.Env):
         if self.enemy_detector:
             obs["enemy_seen"] = geo.detect_circle(lidar, self._poses[k],
                                                   geo.housing_circle(*self._poses[1 - k]))
+            if k == self.agent_side:
+                self._agent_seen = obs["enemy_seen"]
         if self.flatten_obs:
             return np.concatenate([obs[key] for key in self._flat_keys])
         if self.image if image is None else image:
@@ -643,13 +662,25 @@ class BurgerWarEnv(gym.Env):
         else:
             self._agent_lidar = self._scan(a)
         comps = self._reward(before, scores_before, terminated)
-        reward = float(sum(comps.values()))
         obs = self._obs(a, self._agent_lidar)
+        if self.face_penalty:
+            comps["facing"] = self.face_penalty if self._off_facing(self._agent_seen) else 0.0
+        reward = float(sum(comps.values()))
         info = self._info(captures, comps)
         if terminated or truncated:
             info["outcome"], info["my_score"], info["enemy_score"] = match_outcome(info)
             info["my_robot_points"], info["enemy_robot_points"] = robot_marker_points(info)
         return obs, reward, terminated, truncated, info
+
+    def _off_facing(self, seen: np.ndarray) -> bool:
+        """Whether the detector's ``seen`` (seen, x forward, y left; m) puts the other robot
+        nearer than ``face_radius`` and more than ``face_angle`` off the heading (the rule of
+        ``zenrl export --guard``, which acts on the same reading)."""
+        if seen[0] <= 0.5:
+            return False
+        x, y = float(seen[1]), float(seen[2])
+        r = math.hypot(x, y)
+        return 0.0 < r < self.face_radius and x < r * self._face_cos
 
     def _ramp(self, k: int, dt: float) -> tuple[float, float]:
         """Robot k's speeds for the next physics step: towards the command, changing by at most

@@ -389,3 +389,38 @@ def test_enemy_detector_obs_both_sides(make):
     obs, _ = flat.reset(seed=0)
     assert obs.shape == (360 + 4 + 18 + 4 + 4 + 3,)
     np.testing.assert_array_equal(obs[-3:], [0.0, 0.0, 0.0])  # the central box between them
+
+
+def test_face_penalty_paid_on_what_the_detector_sees(make):
+    """The ``facing`` term: paid when the seen robot is near and off the heading, not when it is
+    ahead, beyond the radius, or absent (both sides; worked out from the poses by hand)."""
+    stop = 2  # users action set: (v, w) = (0, 0)
+    for side, k in (("red", 0), ("blue", 1)):
+        env = make(side=side, opponents="idle", lidar_noise=0.0, enemy_detector=True, reward="zero_sum",
+                   face_penalty=-0.25)
+        env.reset(seed=0)
+
+        def step(me, enemy):
+            env.set_poses(*((me, enemy) if k == 0 else (enemy, me)))
+            _, r, _, _, info = env.step(stop)
+            return r, info["reward_components"]
+
+        # 0.5 m straight ahead (bearing ~11 deg to the housing's centre): facing it
+        r, c = step((-0.9, 0.0, 0.0), (-0.4, 0.1, 0.0))
+        assert c["facing"] == 0.0 and r == c["score_diff"] + c["win_bonus"]
+        # the same spot with my heading turned 90 degrees left: it is on my right, 0.5 m away
+        r, c = step((-0.9, 0.0, math.pi / 2), (-0.4, 0.1, 0.0))
+        assert c["facing"] == -0.25 and r == pytest.approx(-0.25 + c["score_diff"] + c["win_bonus"])
+        # 0.84 m away, 45 degrees to my right: inside the default 1.2 m, outside a 0.8 m radius
+        assert step((-0.9, 0.0, math.pi / 2), (-0.3, 0.6, 0.0))[1]["facing"] == -0.25
+        env = make(side=side, opponents="idle", lidar_noise=0.0, enemy_detector=True, reward="zero_sum",
+                   face_penalty=-0.25, face_radius=0.8)
+        env.reset(seed=0)
+        assert step((-0.9, 0.0, math.pi / 2), (-0.3, 0.6, 0.0))[1]["facing"] == 0.0
+    env = make(opponents="idle", enemy_detector=True, reward="zero_sum")
+    env.reset(seed=0)
+    assert "facing" not in env.step(stop)[4]["reward_components"]  # off by default
+    with pytest.raises(ValueError, match="enemy_detector"):
+        make(face_penalty=-0.1)
+    with pytest.raises(ValueError, match="face_penalty"):
+        make(enemy_detector=True, face_penalty=0.5)
