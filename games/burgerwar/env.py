@@ -120,7 +120,7 @@ class BurgerWarEnv(gym.Env):
         reward (component ``facing``): ``face_penalty`` (<= 0) on each step that ends with the
         other robot seen by the enemy detector (needs ``enemy_detector``) nearer than
         ``face_radius`` and more than ``face_angle`` off the heading, where its camera can reach
-        the robot's side and back markers. It teaches a policy to face a robot that comes close
+        the robot's side and back markers: a push towards facing a robot that comes close
         (docs/burgerwar.md, "Rewards"); 0 leaves the reward as it was.
       wall_dist (0.2 m), wall_penalty (-0.5), far_dist (1.0 m), far_penalty (-0.5): the users'
         reward penalties (robot closer than wall_dist to the arena wall; farther than far_dist
