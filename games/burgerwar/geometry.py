@@ -461,3 +461,15 @@ class MarkerReader:
         lbx, lby = local(bx, by)
         hx, hy = FOOTPRINT_HALF
         return _seg_hits_box(lax, lay, lbx, lby, -hx, hx, -hy, hy)
+
+
+#: the guard's rule (``zenrl export --guard``; docs/burgerwar.md, "The guard"), also the defaults of
+#: the env's ``facing`` reward (``face_radius``, ``face_angle``): the other
+#: robot seen within this many metres (a reader needs its camera within 0.8 m of a marker) ...
+GUARD_RADIUS_M = 1.2
+#: ... and more than this many degrees off the heading. A side marker is read from at most 60
+#: degrees off its normal, so from 30 degrees off our heading or more. Released below this angle,
+#: the policy may turn by up to 16 degrees in one decision (1.4 rad/s at 5 Hz) before the guard
+#: looks again: the angle must leave that margin (at 30 an exploiter read the sides the guard
+#: had just released; docs/burgerwar.md)
+GUARD_ANGLE_DEG = 15.0

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from zenrl.common.errors import ZenrlError
+from zenrl.games.burgerwar import geometry as geo
 from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.tools.loading import (ExportedPlayer, env_config_for, is_exported, is_match_env, load_policy_env,
                                  resolve_checkpoint)
@@ -78,15 +79,8 @@ class _MixtureOfTensors(_MixtureOfDicts):
         return out
 
 
-#: the guard's defaults (``zenrl export --guard``; docs/burgerwar.md, "The guard"): the other
-#: robot seen within this many metres (a reader needs its camera within 0.8 m of a marker) ...
-GUARD_RADIUS_M = 1.2
-#: ... and more than this many degrees off the heading. A side marker is read from at most 60
-#: degrees off its normal, so from 30 degrees off our heading or more. Released below this angle,
-#: the policy may turn by up to 16 degrees in one decision (1.4 rad/s at 5 Hz) before the guard
-#: looks again: the angle must leave that margin (at 30 an exploiter read the sides the guard
-#: had just released; docs/burgerwar.md)
-GUARD_ANGLE_DEG = 15.0
+#: the guard's defaults (``zenrl export --guard``), the same rule the env's ``facing`` reward pays on
+GUARD_RADIUS_M, GUARD_ANGLE_DEG = geo.GUARD_RADIUS_M, geo.GUARD_ANGLE_DEG
 
 
 class _Guarded(torch.nn.Module):
