@@ -5,6 +5,8 @@
   values go to the adder, which reuses them for the initial priorities.
 * :class:`Sampling` (A3C, IMPALA): actions drawn from an actor-critic's softmax policy; with
   ``with_logp`` (IMPALA) the extras are the behaviour log-probabilities of the actions drawn.
+* :class:`Demonstrated` (Ape-X): a demonstrator's action in place of the policy's, now and then
+  (``actor.guard_share``: the match env's guard as a teacher).
 * :class:`Greedy` (evaluation): argmax of the Q values or of the policy logits.
 * :class:`RecurrentEpsilonGreedyQ` (R2D2) and :class:`RecurrentGreedy` (its evaluation): the
   same over a recurrent Q network, with a state per env zeroed where an episode begins
@@ -19,7 +21,7 @@ than the arithmetic of the small MLPs actors run.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Protocol
+from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 import torch
@@ -98,6 +100,40 @@ class EpsilonGreedyQ:
     def values(self, obs: Obs) -> np.ndarray:
         """float[B] ``max_a Q(s, a)`` (the n-step builder's bootstrap of truncated episodes)."""
         return self.q(obs).max(1)
+
+
+class Demonstrated:
+    """An Ape-X policy with a demonstrator: where ``rule(obs)`` (int64[E], -1 where it has no
+    action) gives an action for env i, that action replaces the inner policy's with probability
+    ``share``. ``act`` returns the actions taken, so the transitions record what was done and
+    off-policy Q-learning learns the value of the demonstrated actions next to the policy's
+    own; the extras (the Q values acted on) pass through. ``taken`` counts the replaced actions."""
+
+    def __init__(self, inner: EpsilonGreedyQ, rule: Callable[[Obs], np.ndarray], share: float,
+                 rng: np.random.Generator) -> None:
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"a demonstrator's share must be in [0, 1], got {share!r}")
+        self.inner, self.rule, self.share, self.rng = inner, rule, float(share), rng
+        self.taken = 0
+
+    def sync(self) -> None:
+        self.inner.sync()
+
+    def reseed(self, seed: int) -> None:
+        self.inner.reseed(seed)
+        self.rng = np.random.default_rng([seed, 1])
+
+    def act(self, obs: Obs) -> tuple[np.ndarray, np.ndarray]:
+        actions, extras = self.inner.act(obs)
+        shown = np.asarray(self.rule(obs), np.int64)
+        take = (shown >= 0) & (self.rng.random(shown.shape[0]) < self.share)
+        if take.any():
+            actions = np.where(take, shown, actions)
+            self.taken += int(take.sum())
+        return actions, extras
+
+    def values(self, obs: Obs) -> np.ndarray:
+        return self.inner.values(obs)
 
 
 class Greedy:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -25,11 +25,12 @@ import torch
 from zenrl.actor.adders import NStepToReplay
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.actor.pacing import StepPacer
-from zenrl.actor.policies import EpsilonGreedyQ
+from zenrl.actor.policies import Demonstrated, EpsilonGreedyQ, Obs
 from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, AtOnce, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
+from zenrl.common.errors import ConfigError
 from zenrl.common.exploration import elastic_env_epsilons, env_epsilons
 from zenrl.common.networks import QNetwork, num_actions, obs_spec, set_compute_threads
 from zenrl.common.replay_client import ZenohReplayClient
@@ -57,7 +58,11 @@ class ApexActor(ActorWorker):
             eps = elastic_env_epsilons(slot, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
         else:
             eps = env_epsilons(slot, num_slots, acfg.envs_per_actor, acfg.eps_base, acfg.eps_alpha)
-        policy = EpsilonGreedyQ(net, eps, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1)))
+        policy: EpsilonGreedyQ | Demonstrated = EpsilonGreedyQ(net, eps, n_actions,
+                                                               np.random.default_rng(cfg.seed + 7919 * (slot + 1)))
+        if acfg.guard_share > 0:
+            policy = Demonstrated(policy, guard_rule(envs), acfg.guard_share,
+                                  np.random.default_rng([cfg.seed, slot, 1]))
         weights = WeightsFollower(node, keys, net, cfg.transport.max_message_bytes)
         # a sharded replay: this actor's chunks go to shard slot % replay.shards, for its life
         self.replay = ZenohReplayClient(node, P.Keys(run_id, P.actor_shard(slot, cfg.replay.shards)), actor_id,
@@ -77,6 +82,12 @@ class ApexActor(ActorWorker):
         self.eps, self.net = eps, net
         self.adder: NStepToReplay = adder
 
+    def report(self, interval_s: float) -> tuple[dict[str, Any], str | None]:
+        vals, line = super().report(interval_s)
+        if isinstance(self.policy, Demonstrated):
+            vals["guard_actions"] = self.policy.taken
+        return vals, line
+
     @property
     def sent_transitions(self) -> int:
         return self.adder.sent_transitions
@@ -90,6 +101,26 @@ class ApexActor(ActorWorker):
         """Act until ``stop`` (after ``max_steps`` batched steps, idle until then)."""
         self.max_steps = max_steps
         self.run_loop(self.node, stop)
+
+
+def guard_rule(envs: EnvBatch) -> Callable[[Obs], np.ndarray]:
+    """``actor.guard_share``'s demonstrator over ``envs``: batched obs (``obs/enemy_seen`` float32[E, 3]) ->
+    int64[E], each env's ``guard_action`` on its reading (-1 where the guard does not act).
+    ConfigError where an env has no guard (not a match env, no enemy detector, continuous actions)."""
+    acts = [getattr(env.unwrapped, "guard_action", None) for env in envs.envs]
+    space = envs.single_observation_space
+    if any(a is None for a in acts) or "enemy_seen" not in getattr(space, "spaces", {}):
+        raise ConfigError("actor.guard_share needs a match env (zenrl/BurgerWar-v0) with enemy_detector: true "
+                          "and dict observations (flatten_obs: false)")
+    try:
+        acts[0](np.zeros(3, np.float32))
+    except ValueError as e:
+        raise ConfigError(f"actor.guard_share: {e}") from None
+
+    def rule(obs: Obs) -> np.ndarray:
+        seen = obs["obs/enemy_seen"]
+        return np.array([act(seen[i]) for i, act in enumerate(acts)], np.int64)
+    return rule
 
 
 def run_apex_actor(cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int | None,

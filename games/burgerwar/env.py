@@ -34,6 +34,17 @@ USERS_ACTIONS = ((0.2, 0.0), (-0.2, 0.0), (0.0, 0.0), (0.0, 0.5233), (0.0, -0.52
 #: "rich": 3 speeds x 5 turn rates
 RICH_ACTIONS = tuple((v, w) for v in (0.22, 0.0, -0.15) for w in (0.0, 0.5233, -0.5233, 1.4, -1.4))
 REWARDS = ("users", "zero_sum", "sparse")
+
+
+def spot_turns(table: Sequence[Sequence[float]]) -> tuple[int, int]:
+    """``(left, right)``: the indices of the fastest turns on the spot (v = 0) of an action table
+    of ``(v, w)`` rows, w > 0 turning left (the guard's turns). ValueError where the table has
+    none in either direction."""
+    left = max(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w > 0), default=None)
+    right = min(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w < 0), default=None)
+    if left is None or right is None:
+        raise ValueError("the guard turns on the spot, and this action set has no such turn in both directions")
+    return left[1], right[1]
 MARKER_VALUES = ("unit", "points")
 LIDAR_INVALID = ("clip", "zero", "inf")
 #: AMCL's update thresholds in the contest kit's navigation bots (amcl.yaml: update_min_d,
@@ -217,6 +228,7 @@ class BurgerWarEnv(gym.Env):
                              f"(got {face_radius!r}, {face_angle!r})")
         self._face_cos = math.cos(math.radians(float(face_angle)))
         self._agent_seen = np.zeros(3, np.float32)
+        self._turns: tuple[int, int] | None = None
         self.wall_dist, self.wall_penalty = float(wall_dist), float(wall_penalty)
         self.far_dist, self.far_penalty = float(far_dist), float(far_penalty)
         self.start_noise = float(start_noise)
@@ -671,6 +683,25 @@ class BurgerWarEnv(gym.Env):
             info["outcome"], info["my_score"], info["enemy_score"] = match_outcome(info)
             info["my_robot_points"], info["enemy_robot_points"] = robot_marker_points(info)
         return obs, reward, terminated, truncated, info
+
+    @property
+    def action_table(self) -> tuple[tuple[float, float], ...] | None:
+        """The discrete action set's ``(v m/s, w rad/s)`` rows, None for "continuous"."""
+        return {"users": USERS_ACTIONS, "rich": RICH_ACTIONS}.get(self.action_set)
+
+    def guard_action(self, seen: np.ndarray) -> int:
+        """The guard's action on the detector's reading ``seen`` (float[3]: seen, x forward, y
+        left; m): the fastest turn on the spot towards the other robot where it is nearer than
+        ``face_radius`` and more than ``face_angle`` off the heading (the rule the ``facing`` term
+        pays on and ``zenrl export --guard`` acts on), else -1. ValueError for the continuous
+        action set."""
+        if self._turns is None:
+            if self.action_table is None:
+                raise ValueError("the guard needs a discrete action set with turns on the spot (users or rich)")
+            self._turns = spot_turns(self.action_table)
+        if not self._off_facing(seen):
+            return -1
+        return self._turns[0] if float(seen[2]) > 0.0 else self._turns[1]
 
     def _off_facing(self, seen: np.ndarray) -> bool:
         """Whether the detector's ``seen`` (seen, x forward, y left; m) puts the other robot

@@ -1,6 +1,7 @@
 """The actor worker (actor/worker.py) in RoleLoop with an in-memory node: supervision of its
 steps, and what the Ape-X and evaluation compositions publish (A3C's: tests/unit/test_a3c.py)."""
 
+import math
 import time
 
 import numpy as np
@@ -127,3 +128,40 @@ def test_evaluator_plays_a_round_per_new_version_and_publishes_it(tmp_path):
     assert st["eval_rounds"] == 2 and st["version"] == 6 and st["errors_total"] == 0
     assert node.tokens == [keys.alive("evaluator", "evaluator")]
     assert not node.sent(keys.episodes("evaluator")), "evaluation episodes are not training episodes"
+
+
+def test_apex_actor_with_the_guard_as_demonstrator_acts_on_its_turns(tmp_path):
+    """``actor.guard_share=1``: on a real match env with the other robot placed on the agent's
+    right, each step the env's guard acts on is stepped with the guard's turn, and the actor
+    counts them (``guard_actions``); ``guard_share=0`` leaves the policy's actions."""
+    sets = ["env.id=zenrl/BurgerWar-v0", "env.kwargs.opponents=idle", "env.kwargs.side=red",
+            "env.kwargs.lidar_noise=0.0", "env.kwargs.enemy_detector=true"]
+    keys = P.Keys("t")
+    for share in (1.0, 0.0):
+        node = FakeNode(None)
+        actor = ApexActor(_cfg(tmp_path, *sets, f"actor.guard_share={share}"), node, "t", "a0", slot=0, num_slots=1)
+        actor.start(actor.node)
+        assert actor.step(1.0)  # the envs reset
+        for env in actor.envs.envs:
+            env.unwrapped.set_poses((-0.9, 0.0, math.pi / 2), (-0.4, 0.1, 0.0))
+        seen: list = []
+        env_step = actor.envs.step
+
+        def recording(actions):
+            seen.append(([env.unwrapped.guard_action(o) for env, o in zip(actor.envs.envs, actor._obs["obs/enemy_seen"])],
+                         actions.copy()))
+            return env_step(actions)
+
+        actor.envs.step = recording
+        for _ in range(10):
+            actor.step(1.0)
+        actor.report(0.0)
+        fired = [(g, int(a)) for gs, acts in seen for g, a in zip(gs, acts) if g >= 0]
+        assert fired, "the guard never fired: the placed poses do not test it"
+        if share == 1.0:
+            assert all(a == g for g, a in fired)
+            assert actor.report(0.0)[0]["guard_actions"] == len(fired)
+        else:
+            assert "guard_actions" not in actor.report(0.0)[0]
+            assert any(a != g for g, a in fired)  # the policy's own actions, not the guard's
+        actor.close()

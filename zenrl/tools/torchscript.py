@@ -122,11 +122,12 @@ class _GuardedMixture(_Guarded):
 def guard_turns(table: Sequence[Sequence[float]]) -> tuple[int, int]:
     """``(left, right)``: the fastest turns on the spot (v = 0) of an action table of ``(v, w)``
     rows, w > 0 turning left. :class:`ZenrlError` where the table has none in either direction."""
-    left = max(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w > 0), default=None)
-    right = min(((w, i) for i, (v, w) in enumerate(table) if v == 0 and w < 0), default=None)
-    if left is None or right is None:
-        raise ZenrlError("the guard turns on the spot, and this action set has no such turn in both directions")
-    return left[1], right[1]
+    from zenrl.games.burgerwar.env import spot_turns
+
+    try:
+        return spot_turns(table)
+    except ValueError as e:
+        raise ZenrlError(str(e)) from None
 
 
 def _guard_meta(meta: Mapping[str, Any], radius_m: float, angle_deg: float) -> dict[str, Any]:
