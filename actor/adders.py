@@ -61,11 +61,12 @@ class NStepToReplay:
     frame ids (docs/protocol.md)."""
 
     def __init__(self, replay: ZenohReplayClient, num_envs: int, n_step: int, gamma: float, chunk_size: int,
-                 value_fn: ValueFn, version: Callable[[], int], frame_stack: int | None = None) -> None:
+                 value_fn: ValueFn, version: Callable[[], int], frame_stack: int | None = None,
+                 cut_non_greedy: bool = False) -> None:
         chunk_steps = -(-chunk_size // num_envs)
         self.chunk_len = chunk_steps * num_envs
         self.builder = NStepBlocks(num_envs, n_step, gamma, block_steps=chunk_steps * -(-MIN_BLOCK_STEPS // chunk_steps),
-                                   frame_stack=frame_stack)
+                                   frame_stack=frame_stack, cut_non_greedy=cut_non_greedy)
         self.replay, self.value_fn, self.version = replay, value_fn, version
         self.sent_transitions = 0
 

@@ -8,7 +8,10 @@ For a start step ``j`` of env ``e`` the emitted transition holds::
     next_obs = s_{j+m}                   terminated = whether the episode terminated at j+m-1
 
 ``m = n_step`` in mid-episode; when the episode ends within the n steps, ``m`` counts the steps
-that remain. ``terminated`` stops bootstrapping (``discount = gamma ** m * (1 - terminated)``);
+that remain. With ``cut_non_greedy`` a window also stops before a later step whose action was
+not the greedy one (``a != argmax Q`` of the Q values acted on: an exploring or demonstrated
+action), bootstrapping from that step's observation (Watkins's cut): the return then measures
+the greedy policy's actions, not the behaviour's. ``terminated`` stops bootstrapping (``discount = gamma ** m * (1 - terminated)``);
 ``truncated`` bootstraps from ``next_obs``, which is then the episode's final observation.
 
 Each step is only written into preallocated arrays (a few copies); the arithmetic runs once per
@@ -71,7 +74,7 @@ class NStepBlocks:
     transitions, otherwise None."""
 
     def __init__(self, num_envs: int, n_step: int, gamma: float, block_steps: int,
-                 frame_stack: int | None = None) -> None:
+                 frame_stack: int | None = None, cut_non_greedy: bool = False) -> None:
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1, got {n_step}")
         if block_steps < 1:
@@ -87,6 +90,8 @@ class NStepBlocks:
         self._q: np.ndarray | None = None            # Q(s_t, .) [R, E, A]: Q(s, a) and V read at emit
         self._term = np.zeros((R, E), bool)
         self._trunc = np.zeros((R, E), bool)
+        self.cut_non_greedy = bool(cut_non_greedy)
+        self._off = np.zeros((R, E), bool)           # step t's action was not greedy (cut_non_greedy)
         self._disc = gamma ** np.arange(n_step + 1, dtype=np.float64)
         self._idx: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # frame mode (image envs): observations leave as frame ids, each frame sent once
@@ -118,6 +123,8 @@ class NStepBlocks:
                 self._fid[t, e] = self._frame_ids(e, obs)
         self._q[t] = q
         self._act[t] = actions
+        if self.cut_non_greedy:
+            self._off[t] = actions != q.argmax(1)
         self._rew[t] = rewards
         self._term[t] = terminated
         self._trunc[t] = truncated
@@ -163,7 +170,7 @@ class NStepBlocks:
         for arrs in (self._obs, self._final):
             for a in arrs.values():
                 a[:left] = a[keep]
-        for a in (self._act, self._rew, self._q, self._term, self._trunc, self._fid, self._ffid):
+        for a in (self._act, self._rew, self._q, self._term, self._trunc, self._off, self._fid, self._ffid):
             a[:left] = a[keep]
         self.t = left
 
@@ -181,24 +188,30 @@ class NStepBlocks:
         R = np.zeros((K, E))
         m = np.zeros((K, E), np.int64)
         alive = np.ones((K, E), bool)        # window still inside the episode
+        going = alive.copy() if self.cut_non_greedy else alive  # and not cut (the same array without cuts)
         k_end = np.zeros((K, E), np.int64)   # step of the window that ended it, where it ended
         starts, j, env = self._index(K)
         done = self._term[:K + n - 1] | self._trunc[:K + n - 1]
+        cut = self._off[:K + n - 1] if self.cut_non_greedy else None
         for k in range(n):  # ~6 numpy calls per k: this runs once per block, its cost is per call
             rows = slice(k, k + K)
-            R += self._disc[k] * np.where(alive, self._rew[rows], 0.0)
-            m += alive
-            ends = alive & done[rows]
+            if cut is not None and k:
+                going &= ~cut[rows]  # stops before step j+k, inside the episode: bootstraps from s_{j+k}
+            R += self._disc[k] * np.where(going, self._rew[rows], 0.0)
+            m += going
+            ends = going & done[rows]
             k_end = np.where(ends, k, k_end)
             alive ^= ends
+            if going is not alive:
+                going &= ~ends
         ended = ~alive
         end_row = (starts + k_end).ravel()   # row of the ending step
         te_end = self._term[end_row, env].reshape(K, E)
         term = ended & te_end                # an episode that ended and did not terminate was truncated
         trunc = ended & ~te_end
         flat_ended = ended.ravel()
-        # next_obs: s_{j+n} in mid-episode, the stored final observation where the episode ended
-        nxt_row = np.where(flat_ended, end_row, j + n)
+        # next_obs: s_{j+n} in mid-episode (s_{j+m} where cut), the stored final observation where the episode ended
+        nxt_row = np.where(flat_ended, end_row, j + (m.ravel() if self.cut_non_greedy else n))
         data: dict[str, np.ndarray] = {}
         e_idx = flat_ended.nonzero()[0]
         if self.frame_stack is not None:

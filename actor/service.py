@@ -73,7 +73,8 @@ class ApexActor(ActorWorker):
         image = any(s.dtype == "uint8" and len(s.shape) >= 2 for s in spec.values())
         adder = NStepToReplay(self.replay, acfg.envs_per_actor, acfg.n_step, cfg.learner.gamma, acfg.chunk_size,
                               policy.values, lambda: weights.version,
-                              frame_stack=acfg.frame_stack if acfg.frames and image else None)
+                              frame_stack=acfg.frame_stack if acfg.frames and image else None,
+                              cut_non_greedy=acfg.cut_non_greedy)
         super().__init__(keys, actor_id, slot, envs, policy, adder, weights, AtOnce(),
                          poll_steps=acfg.weights_poll_steps, report_s=acfg.episode_report_s,
                          query_timeout_s=cfg.transport.query_timeout_s,

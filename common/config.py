@@ -112,6 +112,7 @@ class ActorConfig(_Section):
     frame_stack: int = Field(0, ge=0, description="Frame mode: observations are stacks of this many frames on their first axis (gymnasium FrameStackObservation), shared between neighbouring stacks; 0: not stacked.")
     compress: Literal["none", "lz4"] = Field("none", description="Compress the uint8 arrays (image frames) of the chunks sent to the replay: lz4 is ~GB/s and shrinks rendered frames many times; random-looking images do not shrink.")
     backlog_chunks: int = Field(512, ge=0, description="Chunks kept while no replay is reachable (resent when it is back); older ones are dropped and counted.")
+    cut_non_greedy: bool = Field(False, description="Ape-X: an n-step window stops before a later step whose action was not the greedy one (exploring, or actor.guard_share's demonstrator) and bootstraps from there (Watkins's cut), so that the return measures the greedy policy's actions rather than the behaviour's; shorter returns where exploration is high.")
     guard_share: float = Field(0.0, ge=0, le=1, description="Ape-X actors of a match env with enemy_detector (zenrl/BurgerWar-v0, discrete actions): on this share of the steps where the env's guard rule fires (the other robot seen nearer than face_radius and more than face_angle off the heading), the actor takes the guard's turn towards it instead of its own action, and the transition records the turn: a demonstrator the learner learns from off-policy, not a part of the policy it ships; 0: off.")
 
 

@@ -12,11 +12,12 @@ from zenrl.replay.service import ReplayService
 from zenrl.replay.store import POLICY_VERSION_FIELD
 
 
-def _stream(k, steps, seed=0, E=2, n=3):
-    """(plain block, frame block) pairs of one simulated actor over unique 3x3 frames."""
+def _stream(k, steps, seed=0, E=2, n=3, cut=False):
+    """(plain block, frame block) pairs of one simulated actor over unique 3x3 frames (``cut``:
+    both builders with ``cut_non_greedy``; about half the random actions are not greedy)."""
     rng = np.random.default_rng(seed)
-    plain = NStepBlocks(E, n, 0.9, block_steps=4)
-    framed = NStepBlocks(E, n, 0.9, block_steps=4, frame_stack=k)
+    plain = NStepBlocks(E, n, 0.9, block_steps=4, cut_non_greedy=cut)
+    framed = NStepBlocks(E, n, 0.9, block_steps=4, frame_stack=k, cut_non_greedy=cut)
     u = [0]
 
     def frame():
@@ -66,11 +67,15 @@ def _check_samples(svc, plain_by_key):
             np.testing.assert_array_equal(s.data[f][i], v, err_msg=f"key {key} {f}")
 
 
+@pytest.mark.parametrize("cut", [False, True])
 @pytest.mark.parametrize("k", [0, 4])
-def test_frame_chunks_sample_back_like_plain_ones(k):
+def test_frame_chunks_sample_back_like_plain_ones(k, cut):
     svc = _service()
     plain_by_key = {}
-    for seq, (bp, bf) in enumerate(_stream(k, 60)):
+    pairs = _stream(k, 60, cut=cut)
+    if cut:  # windows cut inside the episode (n < 3, neither terminated nor truncated)
+        assert any(((bp.data["n"] < 3) & ~bp.data["terminated"] & ~bp.data["truncated"]).any() for bp, _ in pairs)
+    for seq, (bp, bf) in enumerate(pairs):
         first = svc.buffer.inserts_total if svc.buffer is not None else 0
         assert svc.ingest(_framed_payload(bf, seq)) == len(bp)
         for r in range(len(bp)):

@@ -60,15 +60,18 @@ def test_episode_shorter_than_n(terminated):
     assert asked == ([] if terminated else [[99.0, 99.0]])
 
 
-def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value):
+def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value, cut=False):
     """Brute force, per env and start j < T - n: (obs id, action, R, next obs id, m,
     terminated, truncated, priority). Obs id of s_t of env e is 10 t + e; a final observation
-    after step t is 100000 + 10 (t + 1) + e."""
+    after step t is 100000 + 10 (t + 1) + e. ``cut``: a window stops before a later step whose
+    action is not argmax q, and bootstraps from that step's observation."""
     out = []
     for e in range(E):
         for j in range(T - n):
             R, m, end = 0.0, 0, None
             for k in range(n):
+                if cut and k > 0 and act[j + k, e] != q[j + k, e].argmax():
+                    break
                 R += gamma ** k * rew[j + k, e]
                 m += 1
                 if term[j + k, e] or trunc[j + k, e]:
@@ -77,7 +80,7 @@ def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value):
             te = bool(end is not None and term[end, e])
             tr = bool(end is not None and trunc[end, e] and not te)
             if end is None:
-                nxt, boot = 10 * (j + n) + e, q[j + n, e].max()
+                nxt, boot = 10 * (j + m) + e, q[j + m, e].max()
             else:
                 nxt = 100000 + 10 * (end + 1) + e
                 boot = 0.0 if te else final_value(nxt)
@@ -86,11 +89,13 @@ def _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value):
     return sorted(out)
 
 
+@pytest.mark.parametrize("cut", [False, True])
 @pytest.mark.parametrize("E,T,n,K,A", [(4, 60, 3, 5, 3), (3, 41, 1, 1, 3), (2, 50, 5, 16, 2), (5, 30, 3, 64, 3),
                                          (3, 40, 4, 8, 20)])
-def test_against_brute_force(E, T, n, K, A):
+def test_against_brute_force(E, T, n, K, A, cut):
     """Every start that has its n steps recorded comes out exactly once (blocks while running,
-    the rest at flush), equal to the brute force, priorities included."""
+    the rest at flush), equal to the brute force, priorities included; with ``cut_non_greedy``
+    too (about half the actions greedy, so that windows are cut at every offset)."""
     rng = np.random.default_rng(E * 1000 + T)
     gamma = 0.9
     rew = rng.normal(size=(T, E))
@@ -98,9 +103,12 @@ def test_against_brute_force(E, T, n, K, A):
     trunc = (rng.random((T, E)) < 0.05) & ~term
     q = rng.normal(size=(T + 1, E, A))
     act = rng.integers(0, A, (T, E))
+    if cut:
+        greedy = rng.random((T, E)) < 0.5
+        act = np.where(greedy, q[:T].argmax(2), act)
     obs_id = np.arange(T + 1)[:, None] * 10 + np.arange(E)[None, :]
     final_value = lambda ids: np.asarray(ids, np.float64) * 1e-5  # noqa: E731
-    b = NStepBlocks(E, n, gamma, block_steps=K)
+    b = NStepBlocks(E, n, gamma, block_steps=K, cut_non_greedy=cut)
     blocks = []
     for t in range(T):
         nxt = np.where(term[t] | trunc[t], 100000 + obs_id[t + 1], -1)
@@ -120,7 +128,9 @@ def test_against_brute_force(E, T, n, K, A):
             got.append((int(d["obs"][i, 0]), int(d["action"][i]), float(d["reward"][i]), int(d["next_obs"][i, 0]),
                         int(d["n"][i]), bool(d["terminated"][i]), bool(d["truncated"][i]), float(blk.priorities[i])))
     got.sort()
-    ref = _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value)
+    ref = _reference(T, E, n, gamma, rew, term, trunc, q, act, final_value, cut)
+    if cut and n > 1:
+        assert any(r[4] < n and not (r[5] or r[6]) for r in ref), "no window was cut: the test does not test the cut"
     assert [g[:2] + g[3:7] for g in got] == [r[:2] + r[3:7] for r in ref]
     np.testing.assert_allclose([g[2] for g in got], [r[2] for r in ref], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose([g[7] for g in got], [r[7] for r in ref], rtol=1e-5, atol=1e-5)
