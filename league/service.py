@@ -219,7 +219,10 @@ class LeagueService:
             live = lg.live.get(m.opponent)
             if live is not None and m.opponent_version > live.version:
                 return "opponent_version", f"{m.opponent} was never served version {m.opponent_version}"
-        return self.tickets.redeem(m.actor_id, m.ticket, m.player, m.opponent, m.opponent_version)
+        # a learning opponent's weights are served at their newest: an actor that fetched them
+        # after a new version came plays that one (checked above against what was served)
+        return self.tickets.redeem(m.actor_id, m.ticket, m.player, m.opponent, m.opponent_version,
+                                   newer_ok=o.kind == LEARNER)
 
     def _answer(self, handler: Callable[[bytes], bytes | None], payload: bytes) -> bytes | None:
         """``handler(payload)``; an unexpected error costs only this query (no reply: the asker

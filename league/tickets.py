@@ -88,16 +88,18 @@ class TicketBook:
             self.dropped_tickets += 1
         return ticket
 
-    def redeem(self, actor_id: str, ticket: int, player: str, opponent: str, version: int) -> tuple[str, str] | None:
+    def redeem(self, actor_id: str, ticket: int, player: str, opponent: str, version: int,
+               newer_ok: bool = False) -> tuple[str, str] | None:
         """Close ``ticket`` for a result of ``actor_id``: None if it was open for exactly this
-        (player, opponent, version); else (reason, detail). A ticket cited for another pair is
-        closed all the same (it was misused)."""
+        (player, opponent, version), or with ``newer_ok`` (a learning opponent, whose weights
+        the league serves at their newest when asked) for that version or a later one; else
+        (reason, detail). A ticket cited for another pair is closed all the same (it was misused)."""
         a = self._actors.get(actor_id)
         want = None if a is None else a.open.pop(ticket, None)
         if want is None:
             return ("ticket_unknown", f"ticket {ticket} is not open for {actor_id} (never assigned, already "
                     "reported, dropped, or assigned before a league restart)")
-        if want != (player, opponent, int(version)):
+        if want[:2] != (player, opponent) or not (want[2] == int(version) or newer_ok and int(version) > want[2]):
             return ("ticket_mismatch", f"ticket {ticket} was assigned for {want[0]} vs {want[1]}@{want[2]}, "
                     f"the result is {player} vs {opponent}@{version}")
         return None

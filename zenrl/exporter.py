@@ -81,6 +81,7 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "backlog_chunks": ("backlog_chunks", GAUGE, "Chunks waiting in the actor's send backlog."),
         "weights_rejected": ("rejected_weights", COUNTER, "Weights messages the actor refused."),
         "sent_gradients": ("sent_gradients", COUNTER, "Gradient messages sent (A3C workers)."),
+        "guard_actions": ("guard_actions", COUNTER, "Steps acted with the match env's guard turn instead of the policy's action (actor.guard_share)."),
     },
     "learner": {
         "updates": ("updates", COUNTER, "Gradient updates applied by the learner."),

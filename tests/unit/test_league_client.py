@@ -234,3 +234,29 @@ def test_a_frozen_file_of_the_pool_is_a_league_player(tmp_path):
     bad = P.MatchResult("a0", "main", 0, 1, "champ", 4, 1).encode()
     wire.subs[P.LeagueKeys("lg").results_all]("zenrl/lg/league/results/a0", bad)
     assert svc.rejects.counts["opponent_version"] == 1
+
+
+def test_a_live_opponent_served_newer_than_assigned_still_counts(tmp_path):
+    """The league assigns main@3; before the actor fetches its weights the learner broadcasts
+    version 5, which the league serves. The match is played against main@5, reported as such,
+    and counted (ticket for 3, served 5); a result citing a version never served is not."""
+    svc, wire, ch, clock = setup(tmp_path, player="exploiter")
+    pool = OpponentPool(3)
+    rng = np.random.default_rng(0)
+    broadcast(wire, svc, "main", 3, params_to_arrays(net()))
+    ch(pool, rng)
+    wire.deliver()              # assignments for main@3
+    assert ch(pool, rng) is None  # its weights are asked for
+    broadcast(wire, svc, "main", 5, params_to_arrays(net()))
+    wire.deliver()              # the weights reply: version 5
+    name = ch(pool, rng)
+    assert parse_pool_name(name) == ("main", 5)
+    ch.report(MatchResult(name, "red", "win", 9, 1))
+    assert svc.rejects.total == 0 and svc.league.payoff.wdl("exploiter", "main") == (1, 0, 0)
+    # an older version than the ticket's, or another opponent, is still refused
+    t = svc.tickets.issue("a0", "exploiter", "main", 5)
+    assert svc.tickets.redeem("a0", t, "exploiter", "main", 4, newer_ok=True)[0] == "ticket_mismatch"
+    t = svc.tickets.issue("a0", "exploiter", "main", 5)
+    assert svc.tickets.redeem("a0", t, "exploiter", "cheese", 6, newer_ok=True)[0] == "ticket_mismatch"
+    t = svc.tickets.issue("a0", "exploiter", "main", 5)
+    assert svc.tickets.redeem("a0", t, "exploiter", "main", 6)[0] == "ticket_mismatch"  # exact unless newer_ok
