@@ -400,6 +400,9 @@ class RunConfig(_Section):
             raise ValueError("evaluator.policy 'sample' needs algo a3c or impala (a Q network has no action distribution)")
         if self.learner.init_from and self.algo not in ("apex", "r2d2"):
             raise ValueError(f"learner.init_from is for algo apex or r2d2, not {self.algo}")
+        for name in ("guard_share", "cut_non_greedy"):
+            if getattr(self.actor, name) and self.algo != "apex":
+                raise ValueError(f"actor.{name} is for algo apex, not {self.algo}")
         return self
 
 

@@ -127,3 +127,13 @@ def test_guard_rule_over_a_batch_of_match_envs():
                 guard_rule(envs)
         finally:
             envs.close()
+
+
+@pytest.mark.parametrize("algo", ["r2d2", "a3c", "impala"])
+@pytest.mark.parametrize("field,value", [("guard_share", "0.5"), ("cut_non_greedy", "true")])
+def test_ape_x_options_are_refused_for_other_algorithms(algo, field, value):
+    from zenrl.common.config import load_config
+
+    with pytest.raises(Exception, match=f"actor.{field} is for algo apex, not {algo}"):
+        load_config(None, [f"algo={algo}", f"actor.{field}={value}"], environ={})
+    assert getattr(load_config(None, [f"actor.{field}={value}"], environ={}).actor, field)
