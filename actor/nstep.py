@@ -11,7 +11,8 @@ For a start step ``j`` of env ``e`` the emitted transition holds::
 that remain. With ``cut_non_greedy`` a window also stops before a later step whose action was
 not the greedy one (``a != argmax Q`` of the Q values acted on: an exploring or demonstrated
 action), bootstrapping from that step's observation (Watkins's cut): the return then measures
-the greedy policy's actions, not the behaviour's. ``terminated`` stops bootstrapping (``discount = gamma ** m * (1 - terminated)``);
+the greedy policy's actions, not the behaviour's. ``terminated`` stops bootstrapping
+(``discount = gamma ** m * (1 - terminated)``);
 ``truncated`` bootstraps from ``next_obs``, which is then the episode's final observation.
 
 Each step is only written into preallocated arrays (a few copies); the arithmetic runs once per

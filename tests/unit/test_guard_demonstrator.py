@@ -51,7 +51,7 @@ def test_guard_turns_a_robot_until_it_faces_the_other(make_bw):
         env.reset(seed=0)
         me, enemy = (-0.9, 0.0, math.pi / 2), (-0.4, 0.1, 0.0)
         env.set_poses(*((me, enemy) if k == 0 else (enemy, me)))
-        obs = env.step(7)[0]  # (0, -0.5233): stand still and read
+        obs = env.step(7)[0]  # (0, -0.5233): one slow turn on the spot, for a first reading
         first = env.guard_action(obs["enemy_seen"])
         assert first == RICH_RIGHT
         for _ in range(30):

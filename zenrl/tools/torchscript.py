@@ -239,9 +239,7 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
             meta["members"] = len(paths)
             meta["call"] += f"; a mixed policy of {len(paths)} members: policy.pick(i) seats member i as a match begins"
         if is_match_env(env):
-            from zenrl.games.burgerwar.env import RICH_ACTIONS, USERS_ACTIONS
-
-            table = {"users": USERS_ACTIONS, "rich": RICH_ACTIONS}.get(env.unwrapped.action_set)
+            table = env.unwrapped.action_table
             meta["actions_v_w"] = np.asarray(table).tolist() if table is not None else None
         if guard is not None:
             g = _guard_meta(meta, *guard)
