@@ -153,6 +153,8 @@ class LearnerConfig(_Section):
     init_exported: bool = Field(False, description=(
         "learner.init_from is a `zenrl export` TorchScript file: a program, loaded only because the config "
         "says so (as opponents.pool's exported: true)."))
+    guard_imitation: float = Field(0.0, ge=0, description="Ape-X on a match env with enemy_detector (zenrl/BurgerWar-v0, discrete actions, dict observations): weight of a large-margin imitation loss (DQfD, Hester et al. 2018) on the sampled states where the env's guard rule fires (the other robot seen nearer than face_radius and more than face_angle off the heading): max_a [Q(s,a) + margin * (a != g)] - Q(s,g) for the guard's turn g, so the network itself learns to turn towards a nearby robot; 0: off.")
+    guard_margin: float = Field(0.8, gt=0, description="learner.guard_imitation's margin: how far above every other action's Q value the guard's turn is pushed.")
     max_abs_obs: float = Field(1e6, gt=0, description="Ape-X/R2D2: a sampled item with a floating-point observation of larger magnitude is left out of the step and reported to the replay as poisoned (it removes the item and charges its sender). An env's Box may allow such values (CartPole's velocity bounds are float32's max) but they make the network's float32 forward overflow; the default is far above every shipped env's observations.")
     @model_validator(mode="after")
     def _check(self) -> "LearnerConfig":
@@ -403,6 +405,8 @@ class RunConfig(_Section):
         for name in ("guard_share", "cut_non_greedy"):
             if getattr(self.actor, name) and self.algo != "apex":
                 raise ValueError(f"actor.{name} is for algo apex, not {self.algo}")
+        if self.learner.guard_imitation and self.algo != "apex":
+            raise ValueError(f"learner.guard_imitation is for algo apex, not {self.algo}")
         return self
 
 

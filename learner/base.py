@@ -16,7 +16,8 @@ from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig, config_from_dict
 from zenrl.common.checkpoints import TrainingState
 from zenrl.common.env_factory import make_env
-from zenrl.common.errors import CheckpointError
+from zenrl.common.errors import CheckpointError, ConfigError
+from zenrl.common.guard_rule import GuardRule
 from zenrl.common.league_reset import GenerationWatch
 from zenrl.common.metrics import MetricsWriter
 from zenrl.common.networks import num_actions, obs_spec, resolve_device
@@ -31,6 +32,22 @@ def env_shapes(cfg: RunConfig) -> tuple[dict, int]:
     env = make_env(cfg.env)
     try:
         return obs_spec(env.observation_space), num_actions(env.action_space)
+    finally:
+        env.close()
+
+
+def env_guard_rule(cfg: RunConfig) -> GuardRule:
+    """The guard rule of ``cfg.env`` (``learner.guard_imitation``); ConfigError naming what is
+    missing where the env has none (not a match env, or continuous actions)."""
+    env = make_env(cfg.env)
+    try:
+        rule = getattr(env.unwrapped, "guard_rule", None)
+        if rule is None:
+            raise ConfigError(f"learner.guard_imitation needs a match env (zenrl/BurgerWar-v0), not {cfg.env.id}")
+        try:
+            return rule()
+        except ValueError as e:
+            raise ConfigError(f"learner.guard_imitation: {e}") from None
     finally:
         env.close()
 

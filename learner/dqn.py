@@ -7,6 +7,9 @@ Batch layout (flat names, B rows)::
     reward     float32[B]  n-step discounted sum   n  uint8[B]  steps summed (m <= n_step)
     next_obs/* observation s_{j+m}             terminated bool[B]
     weights    float32[B]  IS weights (from the replay)
+
+With ``learner.guard_imitation`` the batch also gets ``guard_action`` int64[B]: the match env's
+guard rule on ``obs/enemy_seen`` (-1 where it does not fire), made with the tensors.
 """
 
 from __future__ import annotations
@@ -20,8 +23,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from zenrl.common.errors import ZenrlError
+from zenrl.common.errors import ConfigError, ZenrlError
 from zenrl.common.config import LearnerConfig, NetworkConfig
+from zenrl.common.guard_rule import GuardRule
 from zenrl.common.networks import QNetwork, rename_prefix, to_tensors
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.guard import UpdateGuard, params_finite
@@ -51,6 +55,17 @@ def dqn_loss(q: torch.Tensor, action: torch.Tensor, target: torch.Tensor, weight
     Returns (loss scalar, |td| float[B], Q(s, a) float[B])."""
     per, td_abs, q_sa = dqn_item_losses(q, action, target, weights, huber_delta)
     return per.mean(), td_abs, q_sa
+
+
+def large_margin_losses(q: torch.Tensor, expert: torch.Tensor, margin: float) -> torch.Tensor:
+    """DQfD's large-margin imitation loss (Hester et al. 2018), per item: ``max_a [Q(s,a) + margin *
+    (a != a_E)] - Q(s,a_E)``, 0 where ``expert`` is -1 (no expert action). q float[B, A], expert
+    int64[B]; returns float[B], >= 0, zero where a_E's Q value leads every other by ``margin``."""
+    has = expert >= 0
+    a_e = expert.clamp(min=0).unsqueeze(1)
+    bonus = torch.full_like(q, float(margin)).scatter(1, a_e, 0.0)
+    j = (q + bonus).max(1).values - q.gather(1, a_e).squeeze(1)
+    return torch.where(has, j, torch.zeros_like(j))
 
 
 def screen_rows(data: Mapping[str, np.ndarray], names: Any, limit: float) -> np.ndarray:
@@ -115,11 +130,16 @@ class DQNLearner:
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, net_cfg: NetworkConfig,
                  cfg: LearnerConfig, device: torch.device,
                  network: Callable[[Mapping[str, ArraySpec], int, NetworkConfig], nn.Module] = QNetwork,
-                 max_priority: float = math.inf) -> None:
+                 max_priority: float = math.inf, guard: GuardRule | None = None) -> None:
         """``network(obs_spec, n_actions, net_cfg)`` builds the online and the target network
         (R2D2 gives its recurrent one). ``max_priority`` (``replay.max_priority``, above which
         the replay refuses priority updates): an item whose |TD| exceeds it is left out of the
-        step and reported, so no priority returned exceeds it."""
+        step and reported, so no priority returned exceeds it. ``guard``: the match env's guard
+        rule, for ``cfg.guard_imitation`` (needed when it is on; read on ``obs/enemy_seen``)."""
+        if cfg.guard_imitation and (guard is None or "obs/enemy_seen" not in spec):
+            raise ConfigError("learner.guard_imitation needs a match env (zenrl/BurgerWar-v0) with enemy_detector: "
+                             "true, a discrete action set and dict observations (flatten_obs: false)")
+        self.guard_rule = guard if cfg.guard_imitation else None
         self.cfg = cfg
         self.device = device
         self.max_priority = float(max_priority)
@@ -176,6 +196,8 @@ class DQNLearner:
         t["obs"] = to_tensors({k: data[k] for k in self.obs_spec}, self.device)
         t["next_obs"] = to_tensors(rename_prefix(data, "next_obs", "obs"), self.device)
         t["weights"] = torch.from_numpy(np.array(weights, np.float32)).to(self.device)
+        if self.guard_rule is not None:
+            t["guard_action"] = torch.from_numpy(self.guard_rule.actions(data["obs/enemy_seen"])).to(self.device)
         t.update(book)
         return t
 
@@ -187,6 +209,24 @@ class DQNLearner:
             y = double_dqn_target(q_next_online, q_next_target, b["reward"].float(), b["n"], b["terminated"], self.cfg.gamma)
         q = self.online(b["obs"])
         per, td_abs, q_sa = dqn_item_losses(q, b["action"], y, b["weights"], self.cfg.huber_delta)
+        imitation = None
+        if "guard_action" in b:
+            imitation = large_margin_losses(q, b["guard_action"], self.cfg.guard_margin)
+            per = per + self.cfg.guard_imitation * imitation
+
+        def metrics(keep: torch.Tensor | None = None) -> dict[str, float]:
+            qs = q_sa if keep is None else q_sa.index_select(0, keep)
+            out = {"q_mean": float(qs.mean().item())}
+            if imitation is not None:
+                fired = b["guard_action"] >= 0
+                if keep is not None:
+                    fired, im = fired.index_select(0, keep), imitation.index_select(0, keep)
+                else:
+                    im = imitation
+                n = int(fired.sum().item())
+                out["guard_fired"] = n / max(1, fired.numel())
+                out["guard_margin_loss"] = float(im.sum().item()) / n if n else 0.0
+            return out
 
         def finite() -> torch.Tensor:
             with torch.no_grad():
@@ -197,12 +237,10 @@ class DQNLearner:
             return ~finite() | ~(td_abs <= self.max_priority)  # NaN |td| is blamed too
 
         def subset(keep: torch.Tensor) -> LossTerms:
-            qk = q_sa.index_select(0, keep)
             return LossTerms(per.index_select(0, keep).mean(), td_abs.index_select(0, keep),
-                             lambda: {"q_mean": float(qk.mean().item())}, bad)
+                             lambda: metrics(keep), bad)
 
-        return LossTerms(per.mean(), td_abs, lambda: {"q_mean": float(q_sa.mean().item())}, bad,
-                         self._over(td_abs), subset, finite)
+        return LossTerms(per.mean(), td_abs, metrics, bad, self._over(td_abs), subset, finite)
 
     def _over(self, abs_td: torch.Tensor) -> torch.Tensor | None:
         """The largest entry of ``abs_td`` (any shape), or None without a bound to compare it to."""

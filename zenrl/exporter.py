@@ -94,6 +94,8 @@ STATS: dict[str, dict[str, tuple[str, str, str]]] = {
         "policy_lag": ("policy_lag_versions", GAUGE, "Mean versions between the data's policy and the learner's."),
         "loss": ("loss", GAUGE, "Mean loss over the last report interval."),
         "q_mean": ("q_mean", GAUGE, "Mean Q(s, a) over the last report interval."),
+        "guard_fired": ("guard_fired_ratio", GAUGE, "Share of sampled states where the match env's guard rule fires (learner.guard_imitation)."),
+        "guard_margin_loss": ("guard_margin_loss", GAUGE, "Mean large-margin imitation loss on the states where the guard rule fires (learner.guard_imitation)."),
         "grad_norm": ("grad_norm", GAUGE, "Mean gradient norm (before clipping) over the last report interval."),
         "beta": ("per_beta", GAUGE, "Prioritized replay's importance-sampling exponent."),
         "lr": ("learning_rate", GAUGE, "Current learning rate."),

@@ -21,6 +21,7 @@ import numpy as np
 import pybullet as p
 from gymnasium import spaces
 
+from zenrl.common.guard_rule import GuardRule
 from zenrl.games.burgerwar import geometry as geo
 from zenrl.games.burgerwar.judge import BLUE, NEUTRAL, RED, Judge, match_outcome, robot_marker_points
 from zenrl.games.burgerwar.opponents import OPPONENT_NAMES, OpponentView, make_opponent
@@ -228,7 +229,8 @@ class BurgerWarEnv(gym.Env):
                              f"(got {face_radius!r}, {face_angle!r})")
         self._face_cos = math.cos(math.radians(float(face_angle)))
         self._agent_seen = np.zeros(3, np.float32)
-        self._turns: tuple[int, int] | None = None
+        self._facing = GuardRule(self.face_radius, self._face_cos, -1, -1)  # the turns, once known: _guard
+        self._guard: GuardRule | None = None
         self.wall_dist, self.wall_penalty = float(wall_dist), float(wall_penalty)
         self.far_dist, self.far_penalty = float(far_dist), float(far_penalty)
         self.start_noise = float(start_noise)
@@ -689,29 +691,30 @@ class BurgerWarEnv(gym.Env):
         """The discrete action set's ``(v m/s, w rad/s)`` rows, None for "continuous"."""
         return {"users": USERS_ACTIONS, "rich": RICH_ACTIONS}.get(self.action_set)
 
+    def guard_rule(self) -> GuardRule:
+        """The guard's rule for this env: ``face_radius``, ``face_angle`` and the action set's
+        fastest turns on the spot (the rule the ``facing`` term pays on, ``actor.guard_share``
+        acts on and ``learner.guard_imitation`` teaches). ValueError for the continuous action
+        set."""
+        if self._guard is None:
+            if self.action_table is None:
+                raise ValueError("the guard needs a discrete action set with turns on the spot (users or rich)")
+            left, right = spot_turns(self.action_table)
+            self._guard = GuardRule(self.face_radius, self._face_cos, left, right)
+        return self._guard
+
     def guard_action(self, seen: np.ndarray) -> int:
         """The guard's action on the detector's reading ``seen`` (float[3]: seen, x forward, y
         left; m): the fastest turn on the spot towards the other robot where it is nearer than
-        ``face_radius`` and more than ``face_angle`` off the heading (the rule the ``facing`` term
-        pays on and ``zenrl export --guard`` acts on), else -1. ValueError for the continuous
-        action set."""
-        if self._turns is None:
-            if self.action_table is None:
-                raise ValueError("the guard needs a discrete action set with turns on the spot (users or rich)")
-            self._turns = spot_turns(self.action_table)
-        if not self._off_facing(seen):
-            return -1
-        return self._turns[0] if float(seen[2]) > 0.0 else self._turns[1]
+        ``face_radius`` and more than ``face_angle`` off the heading, else -1
+        (:meth:`guard_rule`). ValueError for the continuous action set."""
+        return int(self.guard_rule().actions(seen)[0])
 
     def _off_facing(self, seen: np.ndarray) -> bool:
         """Whether the detector's ``seen`` (seen, x forward, y left; m) puts the other robot
         nearer than ``face_radius`` and more than ``face_angle`` off the heading (the rule of
         ``zenrl export --guard``, which acts on the same reading)."""
-        if seen[0] <= 0.5:
-            return False
-        x, y = float(seen[1]), float(seen[2])
-        r = math.hypot(x, y)
-        return 0.0 < r < self.face_radius and x < r * self._face_cos
+        return bool(self._facing.off_facing(seen)[0])
 
     def _ramp(self, k: int, dt: float) -> tuple[float, float]:
         """Robot k's speeds for the next physics step: towards the command, changing by at most
