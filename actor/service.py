@@ -106,22 +106,19 @@ class ApexActor(ActorWorker):
 
 def guard_rule(envs: EnvBatch) -> Callable[[Obs], np.ndarray]:
     """``actor.guard_share``'s demonstrator over ``envs``: batched obs (``obs/enemy_seen`` float32[E, 3]) ->
-    int64[E], each env's ``guard_action`` on its reading (-1 where the guard does not act).
-    ConfigError where an env has no guard (not a match env, no enemy detector, continuous actions)."""
-    acts = [getattr(env.unwrapped, "guard_action", None) for env in envs.envs]
+    int64[E], the env's guard rule on each reading (-1 where the guard does not act; the envs of
+    one batch share their config, so the first env's rule is every env's). ConfigError where the
+    envs have no guard (not a match env, no enemy detector, continuous actions)."""
+    rule = getattr(envs.envs[0].unwrapped, "guard_rule", None)
     space = envs.single_observation_space
-    if any(a is None for a in acts) or "enemy_seen" not in getattr(space, "spaces", {}):
+    if rule is None or "enemy_seen" not in getattr(space, "spaces", {}):
         raise ConfigError("actor.guard_share needs a match env (zenrl/BurgerWar-v0) with enemy_detector: true "
                           "and dict observations (flatten_obs: false)")
     try:
-        acts[0](np.zeros(3, np.float32))
+        g = rule()
     except ValueError as e:
         raise ConfigError(f"actor.guard_share: {e}") from None
-
-    def rule(obs: Obs) -> np.ndarray:
-        seen = obs["obs/enemy_seen"]
-        return np.array([act(seen[i]) for i, act in enumerate(acts)], np.int64)
-    return rule
+    return lambda obs: g.actions(obs["obs/enemy_seen"])
 
 
 def run_apex_actor(cfg: RunConfig, node: Node, run_id: str, actor_id: str, slot: int, num_slots: int | None,
