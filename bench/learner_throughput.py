@@ -529,7 +529,7 @@ def r2d2_bench(args: argparse.Namespace) -> int:
     from zenrl.common.config import load_config
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
-    from zenrl.learner.base import env_shapes
+    from zenrl.learner.base import env_facts
 
     t_start = time.perf_counter()
     rounds, warmup_s, dur_s = (1, 2.0, 5.0) if args.quick else (3, 3.0, 8.0)
@@ -555,7 +555,7 @@ def r2d2_bench(args: argparse.Namespace) -> int:
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
         prefill_sequences(node, keys, rstats, data, prios, sequences_per_chunk(cfg.actor.chunk_size, cfg.r2d2.sequence_length))
         log(f"replay pre-filled: {rstats.latest.get('size')} sequences")
-        spec, n_actions = env_shapes(cfg)
+        spec, n_actions, _ = env_facts(cfg)
         base, mem, svc = [], [], []
         for r in range(rounds):
             b = r2d2_memory_rate(cfg, spec, n_actions, data, prios, False, warmup_s, dur_s)
@@ -612,7 +612,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     from zenrl.common.config import load_config
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
-    from zenrl.learner.base import env_shapes
+    from zenrl.learner.base import env_facts
 
     t_start = time.perf_counter()
     rounds, warmup_s, dur_s = (1, 1.5, 4.0) if args.quick else (3, 2.0, 8.0)
@@ -626,7 +626,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     if args.poison:
         out["mode"] = "poison"
         try:
-            spec, n_actions = env_shapes(cfg)
+            spec, n_actions, _ = env_facts(cfg)
             out.update(poison_bench(cfg, spec, n_actions, 2 if args.quick else 4, 3.0))
             log(f"poison: ratio {out['poison_ratio']} (screened), {out['poison_ratio_in_step']} (in the step); "
                 f"checks {out['checks_overhead_ratio']}; origins {out['origins_overhead_ratio']}")
@@ -637,7 +637,7 @@ def orchestrate(args: argparse.Namespace) -> int:
     if args.guard_only:
         out["mode"] = "guard_only"
         try:
-            spec, n_actions = env_shapes(cfg)
+            spec, n_actions, _ = env_facts(cfg)
             out.update(guard_overhead(cfg, spec, n_actions, 8, 2.0))
             log(f"learner guard: {out['update_us_guarded']} vs {out['update_us_unguarded']} us per update, "
                 f"ratio {out['guard_overhead_ratio']}")
@@ -659,7 +659,7 @@ def orchestrate(args: argparse.Namespace) -> int:
         wait_until(lambda: node.alive_now(keys.alive_role("replay"), 1.0), 60, "replay service")
         prefill(node, keys, rstats, PREFILL)
         log(f"replay pre-filled: {rstats.latest.get('size')} items")
-        spec, n_actions = env_shapes(cfg)
+        spec, n_actions, _ = env_facts(cfg)
         base, svc = [], []
         for r in range(rounds):
             b = baseline_rate(cfg, spec, n_actions, warmup_s, dur_s)

@@ -27,7 +27,7 @@ from zenrl.common.policy_io import initial_q_weights
 from zenrl.common.replay_client import SamplePrefetcher, ShardedReplayClient, replay_client_for
 from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
-from zenrl.learner.base import LearnerBase, env_guard_rule
+from zenrl.learner.base import LearnerBase
 from zenrl.learner.dqn import DQNLearner
 from zenrl.learner.sender import BackgroundSender
 
@@ -60,9 +60,8 @@ class ApexLearner(LearnerBase):
 
     def make_core(self) -> DQNLearner:
         """The learning step this learner drives (R2D2 gives its recurrent one)."""
-        guard = env_guard_rule(self.cfg) if self.cfg.learner.guard_imitation else None
         return DQNLearner(self.spec, self.n_actions, self.cfg.network, self.cfg.learner, self.device,
-                          max_priority=self.cfg.replay.max_priority, guard=guard)
+                          max_priority=self.cfg.replay.max_priority, guard=self.guard_rule)
 
     @property
     def updates(self) -> int:

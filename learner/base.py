@@ -28,26 +28,19 @@ from zenrl.learner.checkpoint import (VersionReservation, checkpoint_dir, list_c
 log = logging.getLogger(__name__)
 
 
-def env_shapes(cfg: RunConfig) -> tuple[dict, int]:
+def env_facts(cfg: RunConfig) -> tuple[dict, int, GuardRule | None]:
+    """``cfg.env``'s observation spec, number of actions and, with ``learner.guard_imitation``,
+    its guard rule (else None), from one env made and closed here. ConfigError naming what is
+    missing where the env has no guard rule (not a match env)."""
     env = make_env(cfg.env)
     try:
-        return obs_spec(env.observation_space), num_actions(env.action_space)
-    finally:
-        env.close()
-
-
-def env_guard_rule(cfg: RunConfig) -> GuardRule:
-    """The guard rule of ``cfg.env`` (``learner.guard_imitation``); ConfigError naming what is
-    missing where the env has none (not a match env, or continuous actions)."""
-    env = make_env(cfg.env)
-    try:
+        spec, n = obs_spec(env.observation_space), num_actions(env.action_space)
+        if not cfg.learner.guard_imitation:
+            return spec, n, None
         rule = getattr(env.unwrapped, "guard_rule", None)
         if rule is None:
             raise ConfigError(f"learner.guard_imitation needs a match env (zenrl/BurgerWar-v0), not {cfg.env.id}")
-        try:
-            return rule()
-        except ValueError as e:
-            raise ConfigError(f"learner.guard_imitation: {e}") from None
+        return spec, n, rule()  # a discrete action set: num_actions refuses the continuous one
     finally:
         env.close()
 
@@ -100,7 +93,8 @@ class LearnerBase:
         self.versions = VersionReservation(self.run_dir)
         torch.set_num_threads(cfg.learner.torch_threads)
         self.device = resolve_device(cfg.learner.device)
-        self.spec, self.n_actions = env_shapes(cfg)
+        #: the env's guard rule, for learner.guard_imitation (None when off)
+        self.spec, self.n_actions, self.guard_rule = env_facts(cfg)
         torch.manual_seed(cfg.seed)
 
     def wants_resume(self, resume: str) -> bool:

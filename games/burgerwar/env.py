@@ -229,8 +229,9 @@ class BurgerWarEnv(gym.Env):
                              f"(got {face_radius!r}, {face_angle!r})")
         self._face_cos = math.cos(math.radians(float(face_angle)))
         self._agent_seen = np.zeros(3, np.float32)
-        self._facing = GuardRule(self.face_radius, self._face_cos, -1, -1)  # the turns, once known: _guard
-        self._guard: GuardRule | None = None
+        # one rule for the facing term and the guard; no turns (-1) for the continuous action set
+        table = self.action_table
+        self._guard = GuardRule(self.face_radius, self._face_cos, *(spot_turns(table) if table else (-1, -1)))
         self.wall_dist, self.wall_penalty = float(wall_dist), float(wall_penalty)
         self.far_dist, self.far_penalty = float(far_dist), float(far_penalty)
         self.start_noise = float(start_noise)
@@ -696,11 +697,8 @@ class BurgerWarEnv(gym.Env):
         fastest turns on the spot (the rule the ``facing`` term pays on, ``actor.guard_share``
         acts on and ``learner.guard_imitation`` teaches). ValueError for the continuous action
         set."""
-        if self._guard is None:
-            if self.action_table is None:
-                raise ValueError("the guard needs a discrete action set with turns on the spot (users or rich)")
-            left, right = spot_turns(self.action_table)
-            self._guard = GuardRule(self.face_radius, self._face_cos, left, right)
+        if self.action_table is None:
+            raise ValueError("the guard needs a discrete action set with turns on the spot (users or rich)")
         return self._guard
 
     def guard_action(self, seen: np.ndarray) -> int:
@@ -714,7 +712,7 @@ class BurgerWarEnv(gym.Env):
         """Whether the detector's ``seen`` (seen, x forward, y left; m) puts the other robot
         nearer than ``face_radius`` and more than ``face_angle`` off the heading (the rule of
         ``zenrl export --guard``, which acts on the same reading)."""
-        return bool(self._facing.off_facing(seen)[0])
+        return bool(self._guard.off_facing(seen)[0])
 
     def _ramp(self, k: int, dt: float) -> tuple[float, float]:
         """Robot k's speeds for the next physics step: towards the command, changing by at most

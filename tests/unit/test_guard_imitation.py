@@ -13,7 +13,7 @@ from zenrl.common.config import EnvConfig, LearnerConfig, NetworkConfig, RunConf
 from zenrl.common.errors import ConfigError
 from zenrl.common.guard_rule import GuardRule
 from zenrl.common.specs import ArraySpec
-from zenrl.learner.base import env_guard_rule
+from zenrl.learner.base import env_facts
 from zenrl.learner.dqn import DQNLearner, large_margin_losses
 
 COS15 = math.cos(math.radians(15.0))
@@ -138,9 +138,13 @@ def test_no_guard_to_learn_is_a_config_error():
         DQNLearner({"obs": ArraySpec((4,), "float32")}, 2, NetworkConfig(hidden=[8]), LearnerConfig(guard_imitation=1.0),
                    torch.device("cpu"), guard=RULE)
     with pytest.raises(ConfigError, match="match env"):
-        env_guard_rule(RunConfig(env=EnvConfig(id="CartPole-v1"), learner=LearnerConfig(guard_imitation=1.0)))
-    rule = env_guard_rule(RunConfig(env=EnvConfig(id="zenrl/BurgerWar-v0", kwargs={
-        "enemy_detector": True, "action_set": "users", "opponents": "idle"}), learner=LearnerConfig(guard_imitation=1.0)))
+        env_facts(RunConfig(env=EnvConfig(id="CartPole-v1"), learner=LearnerConfig(guard_imitation=1.0)))
+    match = EnvConfig(id="zenrl/BurgerWar-v0", kwargs={"enemy_detector": True, "action_set": "users", "opponents": "idle",
+                                                        "face_radius": 1.0, "face_angle": 30.0})
+    spec, n, rule = env_facts(RunConfig(env=match, learner=LearnerConfig(guard_imitation=1.0)))
+    assert "obs/enemy_seen" in spec and n == 5
     assert (rule.left, rule.right) == (3, 4)
+    assert rule.radius == 1.0 and rule.cos_angle == pytest.approx(math.cos(math.radians(30.0)))
+    assert env_facts(RunConfig(env=match))[2] is None  # off: no rule asked for
     with pytest.raises(ValueError, match="learner.guard_imitation is for algo apex"):
         RunConfig(algo="r2d2", learner=LearnerConfig(guard_imitation=1.0))

@@ -52,9 +52,9 @@ def _batches(cfg, k, B=8):
 
 def _core(cfg):
     torch.manual_seed(0)
-    from zenrl.learner.base import env_shapes
+    from zenrl.learner.base import env_facts
 
-    spec, n = env_shapes(cfg)
+    spec, n, _ = env_facts(cfg)
     return R2D2Core(spec, n, cfg.network, cfg.learner, cfg.r2d2, torch.device("cpu"))
 
 
