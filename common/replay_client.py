@@ -277,11 +277,12 @@ class SamplePrefetcher:
             self._issue()
         return self
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop issuing requests; wait at most ``timeout`` s for the retry thread."""
         self._stop.set()
         self._retry_due.set()
         if self._thread is not None:
-            self._thread.join(timeout=5)
+            self._thread.join(timeout=max(0.0, timeout))
 
     def _issue(self) -> None:
         if self._stop.is_set():

@@ -29,7 +29,7 @@ from zenrl.common.roles import Supervisor
 from zenrl.common.transport import Node
 from zenrl.learner.base import LearnerBase
 from zenrl.learner.dqn import DQNLearner
-from zenrl.learner.sender import BackgroundSender
+from zenrl.learner.sender import CLOSE_BUDGET_S, BackgroundSender
 
 log = logging.getLogger(__name__)
 
@@ -199,6 +199,9 @@ class ApexLearner(LearnerBase):
         return vals, line
 
     def close(self) -> None:
-        self._pf.stop()
-        self._sender.close()
+        # one budget for both joins, inside the launcher's 5 s grace after SIGTERM (the final
+        # checkpoint is already written): what is unsent then is lost with the process
+        deadline = time.monotonic() + CLOSE_BUDGET_S
+        self._pf.stop(timeout=1.0)
+        self._sender.close(timeout=deadline - time.monotonic())
 

@@ -14,6 +14,10 @@ from zenrl.common.roles import Supervisor
 
 log = logging.getLogger(__name__)
 
+#: how long a learner's close waits for its helper threads in all: the launcher kills a process
+#: 5 s after SIGTERM, and the save before the close and the session's close need their share
+CLOSE_BUDGET_S = 3.0
+
 
 class BackgroundSender:
     """Puts payloads from a thread of its own so the training step never waits on the network.
@@ -119,8 +123,13 @@ class BackgroundSender:
         if first_error is not None:
             raise first_error  # counted and logged by the supervisor; the next wake-up runs
 
-    def close(self) -> None:
-        """Send what is queued, then stop the thread."""
+    def close(self, timeout: float = CLOSE_BUDGET_S) -> bool:
+        """Send what is queued, then stop the thread; wait at most ``timeout`` s for it. False
+        if it is still sending then (a daemon thread: it does not hold the process's exit)."""
         self._stop.set()
         self._wake.set()
-        self._t.join(timeout=5)
+        self._t.join(timeout=max(0.0, timeout))
+        if self._t.is_alive():
+            log.warning("the learner's sender was still sending after %.1f s; leaving it", timeout)
+            return False
+        return True

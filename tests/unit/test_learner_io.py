@@ -85,6 +85,32 @@ class RaisingPublisher(FakePublisher):
         self.puts.append(payload)
 
 
+class BlockedPublisher:
+    """A put that blocks until released (a congested link under BLOCK congestion control)."""
+
+    def __init__(self) -> None:
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def put(self, payload: bytes) -> None:
+        self.entered.set()
+        self.release.wait(30)
+
+
+def test_sender_close_waits_at_most_its_timeout_for_a_blocked_put(caplog):
+    pub = BlockedPublisher()
+    s = BackgroundSender(linger_s=0.0)
+    s.send(pub, b"w")
+    wait_until(pub.entered.is_set, 5, "the put to start", 0.005)
+    try:
+        with caplog.at_level("WARNING"):
+            assert s.close(timeout=0.2) is False  # returns, the put still blocked
+        assert "still sending after 0.2 s" in caplog.text
+    finally:
+        pub.release.set()
+    s2 = BackgroundSender(linger_s=0.0)
+    assert s2.close(timeout=2.0) is True  # nothing queued: stops at once
+
+
 def test_sender_whose_put_raises_once_counts_it_in_the_supervisor_and_keeps_sending():
     sup = Supervisor()
     pub = RaisingPublisher(ConnectionError("link down"))
