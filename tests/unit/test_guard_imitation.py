@@ -4,6 +4,7 @@ loss adds it on the states where the rule fires, the network learning the guard'
 and the config errors where there is no guard to learn."""
 
 import math
+from typing import Dict
 
 import numpy as np
 import pytest
@@ -52,6 +53,29 @@ def test_env_rule_is_the_one_guard_action_reads(make_bw):
     assert (rule.actions(seen) >= 0).sum() > 20  # the sample exercises the rule
     with pytest.raises(ValueError, match="discrete action set"):
         make_bw(opponents="idle", enemy_detector=True, action_set="continuous").guard_rule()
+
+
+class _NoAction(torch.nn.Module):
+    def forward(self, obs: Dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.tensor(-1, dtype=torch.int64)
+
+
+def test_the_exported_guard_is_the_same_rule():
+    """The TorchScript export cannot call Python: ``_Guarded.forward`` keeps its own copy of the
+    rule. On 400 readings (a quarter on the boundaries) it acts where GuardRule fires, with the
+    same turn, and passes to the inner policy (here: -1) where it does not."""
+    from zenrl.tools.torchscript import _Guarded
+
+    rule = GuardRule(1.0, math.cos(math.radians(30.0)), left=8, right=9)
+    guarded = torch.jit.script(_Guarded(_NoAction(), 1.0, 30.0, 8, 9).eval())
+    rng = np.random.default_rng(1)
+    r, a = rng.uniform(0.0, 1.4, 400), rng.uniform(-math.pi, math.pi, 400)
+    r[:50], a[50:100] = 1.0 + rng.uniform(-1e-3, 1e-3, 50), np.radians(30.0) * rng.choice([-1, 1], 50) + rng.uniform(-1e-3, 1e-3, 50)
+    seen = np.stack([rng.integers(0, 2, 400) | (np.arange(400) < 100), r * np.cos(a), r * np.sin(a)], 1).astype(np.float32)
+    want = rule.actions(seen)
+    got = [int(guarded({"enemy_seen": torch.from_numpy(s)})) for s in seen]
+    assert got == want.tolist()
+    assert 50 < (want >= 0).sum() < 350  # both outcomes, on and near the boundaries
 
 
 def test_large_margin_loss_by_hand():
