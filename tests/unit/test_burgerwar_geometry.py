@@ -180,3 +180,26 @@ def test_fast_marker_reader_agrees_with_vectorised_model():
         agree += fast == ref
         positives += len(ref) > 0
     assert agree == 3000 and positives > 100
+
+
+def test_robot_markers_are_read_only_from_near_and_beside_or_behind():
+    """Where the other robot can stand to read one of ours (the env's reader: 0.8 m, 60 degrees,
+    the camera's field of view, its own footprint in the way): sampled over 60,000 relative poses,
+    its housing is always within 1.0 m of our base and more than 30 degrees off our heading.
+    That zone is where ``learner.guard_imitation`` teaches the turn with ``face_radius`` 1.0 and
+    ``face_angle`` 30 (docs/burgerwar.md, "The guard taught by a loss")."""
+    reader = geo.MarkerReader(0.8, math.cos(math.radians(60.0)))
+    me = (0.0, -0.9, 0.0)  # clear of the field's boxes within reach
+    rng = np.random.default_rng(0)
+    dists, angles = [], []
+    for r, th, yaw in zip(rng.uniform(0.15, 1.3, 60000), rng.uniform(-math.pi, math.pi, 60000),
+                          rng.uniform(-math.pi, math.pi, 60000)):
+        other = (r * math.cos(th), -0.9 + r * math.sin(th), yaw)
+        if any(i >= geo.N_FIELD for i in reader.reads(other, me, geo.RED_MARKERS)):
+            hx = other[0] + geo.HOUSING_X * math.cos(yaw)
+            hy = other[1] + 0.9 + geo.HOUSING_X * math.sin(yaw)
+            dists.append(math.hypot(hx, hy))
+            angles.append(abs(math.degrees(math.atan2(hy, hx))))
+    assert len(dists) > 2000  # the sample finds the reading poses
+    assert max(dists) < 1.0 and min(angles) > 30.0
+    assert max(dists) > 0.9 and min(angles) < 40.0  # and reaches the zone's edges: the bounds are tight
