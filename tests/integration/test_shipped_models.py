@@ -18,6 +18,7 @@ MODELS = {
     "burgerwar_camera.pt": ("zenrl/BurgerWarImage-v0", "cheese", 4, 3),
     "burgerwar_pfsp.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
     "burgerwar_pfsp_guard.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
+    "burgerwar_pfsp_taught.pt": ("zenrl/BurgerWar-v0", "clubhouse", 4, 3),
 }
 
 
