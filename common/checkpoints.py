@@ -262,8 +262,20 @@ def read_checkpoint(path: str | os.PathLike[str]) -> TrainingState:
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
     except Exception as e:  # torch raises many types for truncated/corrupt archives
+        if not _is_zip(path):  # torch's own error for these says nothing useful ("list index out of range")
+            raise CheckpointError(f"checkpoint {str(path)!r} is not a PyTorch checkpoint "
+                                  "(torch.save writes a zip archive; this file is not one)") from None
         raise CheckpointError(f"checkpoint {str(path)!r} is unreadable: {type(e).__name__}: {e}") from None
     return TrainingState.from_dict(d, f"checkpoint {str(path)!r}")
+
+
+def _is_zip(path: str | os.PathLike[str]) -> bool:
+    """The file starts as a zip archive does (a truncated one too: only its end is missing)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
 
 
 def load_latest(directory: str | os.PathLike[str]) -> tuple[TrainingState, Path]:

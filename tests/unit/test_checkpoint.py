@@ -95,6 +95,23 @@ def test_pickled_objects_are_refused(tmp_path):
         read_checkpoint(p)
 
 
+@pytest.mark.parametrize("content", [b"root:x:0:0:root:/root:/bin/bash\n", bytes(range(256)) * 4, b""])
+def test_a_file_that_is_no_archive_is_named_as_such(tmp_path, content):
+    p = tmp_path / "ckpt-000000000001.pt"
+    p.write_bytes(content)
+    with pytest.raises(CheckpointError, match=r"is not a PyTorch checkpoint \(torch.save writes a zip archive"):
+        read_checkpoint(p)
+
+
+def test_a_truncated_archive_is_unreadable(tmp_path):
+    p = tmp_path / "ckpt-000000000001.pt"
+    torch.save({"format": 1, "x": torch.zeros(1000)}, p)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="is unreadable: "):
+        read_checkpoint(p)
+
+
 def test_resume_compatibility():
     cfg = load_config(None, ["network.hidden=[32,32]"], environ={})
     more_actors = load_config(None, ["network.hidden=[32,32]", "actor.num_actors=8"], environ={})
