@@ -26,6 +26,51 @@ log = logging.getLogger("zenrl")
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
 
+def _int_at_least(lo: int) -> Callable[[str], int]:
+    """An argparse type: an int >= ``lo`` (a careless value gets argparse's one-line error)."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
+        return v
+    return parse
+
+
+def _port(text: str) -> int:
+    """An argparse type: a TCP port, 1..65535."""
+    v = _int_at_least(1)(text)
+    if v > 65535:
+        raise argparse.ArgumentTypeError(f"a TCP port is 1..65535, got {v}")
+    return v
+
+
+def _float_above(lo: float, at_most: float | None = None) -> Callable[[str], float]:
+    """An argparse type: a finite float > ``lo`` (and <= ``at_most``)."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not (v > lo) or v == float("inf") or (at_most is not None and v > at_most):
+            bound = f"> {lo:g}" + ("" if at_most is None else f" and <= {at_most:g}")
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return v
+    return parse
+
+
+def _float_at_least_zero(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 <= v < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
 def setup_logging(level: str = "INFO", role: str = "") -> None:
     fmt = f"%(asctime)s %(levelname)s {role + ' ' if role else ''}%(name)s: %(message)s"
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, stream=sys.stderr)
@@ -78,7 +123,7 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                    help="override one config option (repeatable)")
     p.add_argument("--run-id", help="run id (key prefix zenrl/<run-id>/); also config run_id")
     p.add_argument("--router", help="Zenoh router endpoint (also $ZENRL_ROUTER)")
-    p.add_argument("--seed", type=int, help="base random seed")
+    p.add_argument("--seed", type=_int_at_least(0), help="base random seed")
     p.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "INFO"), help="logging level")
 
 
@@ -511,10 +556,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("run", help="run everything on this machine (embedded router)", epilog=_options_epilog(),
                        formatter_class=fmt)
     _add_config_args(s)
-    s.add_argument("--actors", type=int, help="number of actor processes (actor.num_actors)")
+    s.add_argument("--actors", type=_int_at_least(1), help="number of actor processes (actor.num_actors)")
     s.add_argument("--resume", metavar="RUN_DIR", help="resume the run in RUN_DIR (runs/<id>) from its newest checkpoint")
     s.add_argument("--no-progress", action="store_true", help="no live progress display")
-    s.add_argument("--exporter-port", type=int, metavar="PORT",
+    s.add_argument("--exporter-port", type=_port, metavar="PORT",
                    help="also start `zenrl exporter` on this port: Prometheus metrics of the run (docs/monitoring.md)")
     s.set_defaults(func=cmd_run)
 
@@ -523,7 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--id", default=None, help="service id (default: replay, or replay-<k> for shard k)")
     s.add_argument("--agent", metavar="ID", help="a league agent's process (a key of league.agents): its run id "
                    "<run>.<ID> and overrides, as zenrl run gives them (a cluster's league; docs/cluster.md)")
-    s.add_argument("--shard", type=int, default=None, metavar="K",
+    s.add_argument("--shard", type=_int_at_least(0), default=None, metavar="K",
                    help="this service's shard when replay.shards > 1 (0..shards-1; also $ZENRL_REPLAY_SHARD)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_replay)
@@ -544,7 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(s)
     s.add_argument("--id", default=None,
                    help="actor id (default: actor-<host>-<pid>; in secured mode the login's, actor-<i>)")
-    s.add_argument("--slot", type=int, default=None,
+    s.add_argument("--slot", type=_int_at_least(0), default=None,
                    help="exploration slot (default: from config or the running system; in secured mode the login's, <i>)")
     s.add_argument("--agent", metavar="ID", help="a league agent's process (a key of league.agents): its run id "
                    "<run>.<ID> and overrides, as zenrl run gives them (a cluster's league; docs/cluster.md)")
@@ -565,14 +610,14 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("exporter", help="Prometheus metrics of a run's stats and health on an HTTP port",
                        epilog=_options_epilog("exporter"), formatter_class=fmt)
     _add_config_args(s)
-    s.add_argument("--port", type=int, default=9464, help="HTTP port of /metrics")
+    s.add_argument("--port", type=_port, default=9464, help="HTTP port of /metrics")
     s.add_argument("--host", default="0.0.0.0", help="address to listen on (default every interface)")
-    s.add_argument("--expected-actors", type=int, default=None,
+    s.add_argument("--expected-actors", type=_int_at_least(0), default=None,
                    help="actor processes the run should have (default actor.num_actors, or the agent's "
                         "league.agents.<ID>.num_actors with --agent): zenrl_actors_expected")
     s.add_argument("--agent", metavar="ID", help="watch a league agent's processes (a key of league.agents): its "
                    "run id <run>.<ID> and actor count, as zenrl run gives them (a cluster's league)")
-    s.add_argument("--poll-s", type=float, default=1.0, help="how often the liveliness tokens are polled (seconds)")
+    s.add_argument("--poll-s", type=_float_above(0), default=1.0, help="how often the liveliness tokens are polled (seconds)")
     _add_credential_args(s)
     s.set_defaults(func=cmd_exporter)
 
@@ -601,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("credentials", help="fresh credentials of a secured cluster: passwords, users file, "
                                            "client configs, router configs with per-actor access control")
     s.add_argument("--out", required=True, help="directory to write (kept as it is if it already holds users.txt)")
-    s.add_argument("--actors", type=int, default=16, help="actor logins actor-0 .. actor-<N-1> (default 16)")
+    s.add_argument("--actors", type=_int_at_least(1), default=16, help="actor logins actor-0 .. actor-<N-1> (default 16)")
     s.add_argument("--templates", default="deploy/zenoh",
                    help="directory with router-secure.json5 and host-router-secure.json5 (default deploy/zenoh)")
     s.add_argument("--ca", default="/certs/ca.pem", help="CA certificate path written into the client configs")
@@ -619,7 +664,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "otherwise give --run-id and --router")
     _add_config_args(s)
     s.add_argument("--json", action="store_true", help="print JSON")
-    s.add_argument("--wait", type=float, default=3.0,
+    s.add_argument("--wait", type=_float_at_least_zero, default=3.0,
                    help="listen at most this many seconds (rates need two reports of each process)")
     s.set_defaults(func=cmd_status)
 
@@ -650,10 +695,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "every pair plays --episodes matches (half on each side, each on a fresh seed from --seed; two "
                         "bots do not meet), reported as a win/draw/loss table and Elo ratings with 95%% intervals")
     s.add_argument("--anchor", metavar="PLAYER", help="round robin: the player rated 0 (default: the mean rating is 0)")
-    s.add_argument("--episodes", type=int, default=20,
+    s.add_argument("--episodes", type=_int_at_least(1), default=20,
                    help="episodes per opponent (half red, half blue); with --round-robin, matches per pair")
-    s.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
-    s.add_argument("--seed", type=int, default=2_000_000, help="first episode seed")
+    s.add_argument("--workers", type=_int_at_least(1), default=max(1, (os.cpu_count() or 2) - 1), help="parallel processes")
+    s.add_argument("--seed", type=_int_at_least(0), default=2_000_000, help="first episode seed")
     s.add_argument("--policy", choices=("greedy", "sample"), default="greedy",
                    help="greedy: argmax; sample: draw from an a3c checkpoint's action distribution (seeded per episode)")
     s.add_argument("--json", metavar="OUT", help="also write the full results (every episode) as JSON here")
@@ -666,12 +711,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output file, .gif (pillow) or .mp4 (imageio-ffmpeg)")
     s.add_argument("--opponent", help="match opponent (default: drawn from the env's opponents)")
     s.add_argument("--side", choices=["red", "blue"], help="match side (default: the env's)")
-    s.add_argument("--seed", type=int, default=0, help="episode seed")
-    s.add_argument("--fps", type=float, help="frames per second of the episode (default: real time)")
-    s.add_argument("--speedup", type=float, default=1.0,
+    s.add_argument("--seed", type=_int_at_least(0), default=0, help="episode seed")
+    s.add_argument("--fps", type=_float_above(0), help="frames per second of the episode (default: real time)")
+    s.add_argument("--speedup", type=_float_above(0), default=1.0,
                    help="play this many times faster, e.g. 4 for a 3-minute match in 45 s (a GIF keeps every "
                         "k-th frame above 25 fps)")
-    s.add_argument("--max-steps", type=int, help="stop after this many steps")
+    s.add_argument("--max-steps", type=_int_at_least(1), help="stop after this many steps")
     s.set_defaults(func=cmd_play)
 
     s = sub.add_parser("plot", help="learning curves of a run (metrics.jsonl) as a PNG")
@@ -693,8 +738,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "robot's markers are on its sides and back); with --exported, --checkpoint may be an "
                         "exported file to wrap")
     # defaults: zenrl.tools.torchscript.GUARD_RADIUS_M, GUARD_ANGLE_DEG (not imported here: torch)
-    s.add_argument("--guard-radius", type=float, metavar="M", help="the guard's reach in metres (1.2)")
-    s.add_argument("--guard-angle", type=float, metavar="DEG",
+    s.add_argument("--guard-radius", type=_float_above(0), metavar="M", help="the guard's reach in metres (1.2)")
+    s.add_argument("--guard-angle", type=_float_above(0, 180), metavar="DEG",
                    help="the guard turns when the other robot is more than this many degrees off the heading (15)")
     s.add_argument("--exported", action="store_true", help="with --guard: --checkpoint may be a `zenrl export` file "
                                                            "(a program, which runs code when loaded: only one you trust)")
@@ -704,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
                                        "(stochastic weight averaging): steadier than any one of them")
     s.add_argument("sources", nargs="+", metavar="CHECKPOINT",
                    help="ckpt-*.pt files of one run, or a run folder (runs/<id>) or checkpoints folder")
-    s.add_argument("--last", type=int, default=None, metavar="K",
+    s.add_argument("--last", type=_int_at_least(1), default=None, metavar="K",
                    help="for a folder: its newest K checkpoints (default: all)")
     s.add_argument("--out", required=True, help="output checkpoint file (not in a checkpoints folder you resume from)")
     s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")

@@ -1,0 +1,44 @@
+"""Careless command-line values get argparse's one-line error naming the option, not a traceback
+from deep inside (a port past 65535, zero episodes, a negative frame rate or seed)."""
+
+from __future__ import annotations
+
+import pytest
+
+from zenrl.cli import build_parser
+
+
+@pytest.mark.parametrize("argv, option, why", [
+    (["exporter", "--run-id", "r", "--port", "99999"], "--port", "1..65535"),
+    (["exporter", "--run-id", "r", "--port", "0"], "--port", ">= 1"),
+    (["exporter", "--run-id", "r", "--poll-s", "0"], "--poll-s", "> 0"),
+    (["run", "--actors", "0"], "--actors", ">= 1"),
+    (["run", "--exporter-port", "70000"], "--exporter-port", "1..65535"),
+    (["run", "--seed", "-1"], "--seed", ">= 0"),
+    (["evaluate", "--checkpoint", "x", "--episodes", "0"], "--episodes", ">= 1"),
+    (["evaluate", "--checkpoint", "x", "--workers", "0"], "--workers", ">= 1"),
+    (["evaluate", "--checkpoint", "x", "--seed", "-5"], "--seed", ">= 0"),
+    (["evaluate", "--checkpoint", "x", "--episodes", "ten"], "--episodes", "not an integer"),
+    (["play", "--checkpoint", "x", "--fps", "-1"], "--fps", "> 0"),
+    (["play", "--checkpoint", "x", "--fps", "nan"], "--fps", "> 0"),
+    (["play", "--checkpoint", "x", "--speedup", "inf"], "--speedup", "> 0"),
+    (["play", "--checkpoint", "x", "--max-steps", "0"], "--max-steps", ">= 1"),
+    (["export", "--checkpoint", "x", "--out", "y", "--guard-angle", "200"], "--guard-angle", "<= 180"),
+    (["average", "x", "--out", "y", "--last", "0"], "--last", ">= 1"),
+    (["credentials", "--out", "d", "--actors", "-3"], "--actors", ">= 1"),
+    (["status", "--wait", "-1"], "--wait", ">= 0"),
+])
+def test_out_of_range_values_are_one_line_errors(capsys, argv, option, why):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"argument {option}" in err and why in err, err
+
+
+def test_in_range_values_parse():
+    a = build_parser().parse_args(["play", "--checkpoint", "x", "--out", "a.gif", "--fps", "12.5", "--seed", "0",
+                                   "--max-steps", "1"])
+    assert (a.fps, a.seed, a.max_steps) == (12.5, 0, 1)
+    a = build_parser().parse_args(["exporter", "--run-id", "r", "--port", "65535"])
+    assert a.port == 65535
