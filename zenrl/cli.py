@@ -47,28 +47,19 @@ def _port(text: str) -> int:
     return v
 
 
-def _float_above(lo: float, at_most: float | None = None) -> Callable[[str], float]:
-    """An argparse type: a finite float > ``lo`` (and <= ``at_most``)."""
+def _float_above(lo: float, at_most: float | None = None, *, or_equal: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float > ``lo`` (>= with ``or_equal``; and <= ``at_most``)."""
     def parse(text: str) -> float:
         try:
             v = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-        if not (v > lo) or v == float("inf") or (at_most is not None and v > at_most):
-            bound = f"> {lo:g}" + ("" if at_most is None else f" and <= {at_most:g}")
+        low_ok = v >= lo if or_equal else v > lo
+        if not low_ok or v == float("inf") or (at_most is not None and v > at_most):
+            bound = f"{'>=' if or_equal else '>'} {lo:g}" + ("" if at_most is None else f" and <= {at_most:g}")
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
         return v
     return parse
-
-
-def _float_at_least_zero(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0 <= v < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
 
 
 def setup_logging(level: str = "INFO", role: str = "") -> None:
@@ -664,7 +655,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "otherwise give --run-id and --router")
     _add_config_args(s)
     s.add_argument("--json", action="store_true", help="print JSON")
-    s.add_argument("--wait", type=_float_at_least_zero, default=3.0,
+    s.add_argument("--wait", type=_float_above(0, or_equal=True), default=3.0,
                    help="listen at most this many seconds (rates need two reports of each process)")
     s.set_defaults(func=cmd_status)
 
