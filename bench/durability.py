@@ -33,7 +33,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import statistics
 import sys
 import tempfile
@@ -78,11 +77,11 @@ def cartpole_batches(seed: int, count: int) -> list[tuple[dict[str, np.ndarray],
 def role_pub(args: argparse.Namespace) -> int:
     from zenrl.common import protocol as P
     from zenrl.common.replay_client import ZenohReplayClient
+    from zenrl.common.signals import install_stop_signals
     from zenrl.common.transport import Node
 
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    install_stop_signals(stop)  # not a lambda: a handler that sets the event can deadlock
     parent = int(os.environ.get("BENCH_PARENT_PID", "0") or 0)
     keys = P.Keys(args.run)
     batches = cartpole_batches(args.seed, 64)

@@ -59,7 +59,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -104,9 +103,10 @@ N_PUBLISHERS = 2
 # ---------------------------------------------------------------------------------------------
 def watch_parent(stop: threading.Event) -> None:
     """Role processes end by themselves if the benchmark that started them is gone."""
+    from zenrl.common.signals import install_stop_signals
+
     parent = int(os.environ.get("BENCH_PARENT_PID", "0") or 0)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    install_stop_signals(stop)  # not a lambda: a handler that sets the event can deadlock
     if not parent:
         return
 

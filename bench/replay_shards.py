@@ -60,11 +60,10 @@ EDGE_S = 0.5
 
 def _watch_parent(stop: threading.Event) -> None:
     """Role processes end by themselves if the benchmark that started them is gone."""
-    import signal
+    from zenrl.common.signals import install_stop_signals
 
     parent = int(os.environ.get("BENCH_PARENT_PID", "0") or 0)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    install_stop_signals(stop)  # not a lambda: a handler that sets the event can deadlock
 
     def loop() -> None:
         while not stop.wait(0.5):

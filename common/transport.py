@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 import time
 from typing import Any, Callable, Iterable
@@ -462,15 +461,3 @@ class LatestValue:
     @property
     def received(self) -> int:
         return self._count
-
-
-def install_stop_signals(stop: threading.Event) -> None:
-    """SIGTERM and SIGINT set ``stop`` (so the process closes its session and saves state)
-    instead of killing the interpreter. Call from the main thread."""
-
-    def handler(signum: int, _frame: Any) -> None:
-        log.info("signal %s received, stopping", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, handler)
-    signal.signal(signal.SIGINT, handler)

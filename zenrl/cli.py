@@ -138,7 +138,7 @@ def resolve(args: argparse.Namespace, extra: list[str] | None = None) -> RunConf
 def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str, threading.Event], None]) -> int:
     from zenrl.common.league_reset import EXIT_GENERATION, GenerationReset
     from zenrl.common.roles import RoleFailed
-    from zenrl.common.transport import install_stop_signals
+    from zenrl.common.signals import install_stop_signals
     from zenrl.identity import check_dev_credentials
 
     setup_logging(args.log_level, role)
@@ -295,7 +295,8 @@ def _running_run_dir(args: argparse.Namespace):
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from zenrl.common.transport import install_stop_signals, open_router
+    from zenrl.common.signals import install_stop_signals
+    from zenrl.common.transport import open_router
     from zenrl.identity import check_router_dev_credentials
 
     setup_logging(args.log_level, "router")

@@ -301,7 +301,8 @@ class Launcher:
         elif cfg.target_return is not None and p.last_eval is not None and p.last_eval >= cfg.target_return:
             self._stop_with(f"solved: eval return {p.last_eval:.1f} >= target_return {cfg.target_return}")
 
-    def _on_signal(self, signum: int, _frame: Any) -> None:
+    def _on_signal(self, signum: int) -> None:
+        # called on the stop-signal relay's thread (zenrl.common.signals), not in a signal handler
         if signum == signal.SIGINT:
             self._stop_with("interrupted by user (Ctrl-C)")
         else:
@@ -311,6 +312,7 @@ class Launcher:
     def run(self) -> int:
         from zenrl.common import protocol as P
         from zenrl.common.metrics import MetricsWriter
+        from zenrl.common.signals import on_stop_signals
         from zenrl.common.transport import Node, open_router
 
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -323,8 +325,7 @@ class Launcher:
                 (self.run_dir / "agents" / f"{aid}.yaml").write_text(yaml.safe_dump(acfg.model_dump(mode="json"),
                                                                                     sort_keys=False))
             self.applied = read_applied(self.run_dir)
-        signal.signal(signal.SIGINT, self._on_signal)
-        signal.signal(signal.SIGTERM, self._on_signal)
+        on_stop_signals(self._on_signal)
         listen, self.endpoint = self._endpoints()
         every_cpu = usable_cpus()
         if self.placement is not None:
