@@ -11,6 +11,7 @@ import argparse
 import logging
 import os
 import re
+import signal
 import sys
 import threading
 from typing import Callable
@@ -762,11 +763,22 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # A one-shot command (evaluate, export, status, ...) stops on SIGTERM as on Ctrl-C: its
+    # finally blocks run (an evaluation's worker pool is terminated, not orphaned). The roles
+    # and `zenrl run` replace this with their own orderly stop (zenrl.common.signals).
+    main_thread = threading.current_thread() is threading.main_thread()
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
     try:
         return int(args.func(args) or 0)
     except ZenrlError as e:
         sys.stderr.write(f"zenrl: error: {_RUST_SOURCE.sub('', str(e))}\n")
         return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("zenrl: interrupted\n")
+        return 130
+    finally:
+        if main_thread and before is not None and signal.getsignal(signal.SIGTERM) is signal.default_int_handler:
+            signal.signal(signal.SIGTERM, before)
 
 
 if __name__ == "__main__":

@@ -4,9 +4,12 @@ checkpoints written here in the learner's format (CartPole and short Burger War 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import struct
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -26,6 +29,7 @@ from zenrl.common.policy_io import load_policy, read_checkpoint, sampled_actions
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
 from zenrl import tools
+from tests.conftest import wait_until
 
 # a match of 3 s + 1 s sudden death at 5 decisions/s: at most 20 steps
 SHORT_MATCH = {"match_time": 3.0, "sudden_death_time": 1.0, "control_hz": 5, "opponents": ["cheese"],
@@ -678,3 +682,49 @@ def test_a_guarded_mixture_seats_members_and_guards_each(guarded_ckpt, tmp_path)
     p2 = tools.ExportedPlayer(wrapped["out"])
     p2.current = 1
     assert [p2(o) for o in obs] == refs[1]
+
+
+def _children(pid: int) -> set[int]:
+    try:
+        return {int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()}
+    except OSError:
+        return set()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_evaluate_with_workers_stops_on_a_signal_to_its_group(ckpts, sig):
+    # Ctrl-C in a terminal signals every process of the group, the workers too; SIGTERM (kill,
+    # timeout) reaches the parent only: either way the command ends at once, says so in one line
+    # and leaves no worker behind (it once printed a KeyboardInterrupt traceback, then hung on
+    # the pool's queue lock until killed; after SIGTERM its workers lived on as orphans)
+    cmd = [sys.executable, "-m", "zenrl.cli", "evaluate", "--checkpoint", str(ckpts["cartpole"]),
+           "--episodes", "100000", "--workers", "2", "--no-progress"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        # both workers started (spawn: fresh interpreters), then a moment for them to take jobs
+        wait_until(lambda: len([c for c in _children(p.pid)
+                                if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text(errors="replace")]) >= 2
+                   if p.poll() is None else True, 60, "evaluation workers")
+        assert p.poll() is None, p.communicate()
+        workers = _children(p.pid)
+        time.sleep(3.0)
+        if sig == "SIGINT":
+            os.killpg(p.pid, signal.SIGINT)
+        else:
+            os.kill(p.pid, signal.SIGTERM)
+        out, err = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, (p.returncode, err[-2000:])
+    assert err.strip().splitlines()[-1] == "zenrl: interrupted", err[-2000:]
+    assert "Traceback" not in err, err[-3000:]
+    wait_until(lambda: not any(_alive(w) for w in workers), 10, "the workers to end")

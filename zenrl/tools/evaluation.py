@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
+import signal
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -129,6 +133,44 @@ class EpisodeRunner:
 _RUNNER: EpisodeRunner | None = None  # one per worker process (set by the pool initializer)
 
 
+def _init_pool_worker(initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
+    # Ctrl-C reaches every process of the terminal's group: it is the parent's to act on. A
+    # worker interrupted inside the pool's queue leaves its lock held, and the pool's shutdown
+    # then waits forever (seen: a KeyboardInterrupt traceback, then a hang).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+
+    def watch() -> None:  # a parent killed outright (SIGKILL) cannot stop the pool: end with it
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    initializer(*initargs)
+
+
+def run_pooled(workers: int, initializer: Callable[..., None], initargs: tuple[Any, ...],
+               fn: Callable[[Any], Any], jobs: Sequence[Any], on_result: Callable[[Any], None]) -> None:
+    """``on_result(fn(job))`` for every job, as each finishes, in ``workers`` ``spawn``
+    processes set up by ``initializer(*initargs)``. An exception here (a job's, or Ctrl-C's
+    KeyboardInterrupt) stops the pool at once: the jobs not started are cancelled and the
+    workers terminated, not waited for; then it is raised."""
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                               initializer=_init_pool_worker, initargs=(initializer, initargs))
+    try:
+        for fut in as_completed([pool.submit(fn, j) for j in jobs]):
+            on_result(fut.result())
+    except BaseException:
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.join(5)
+        raise
+    pool.shutdown()
+
+
 def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
                  opponents: Sequence[str] | None, sample: bool = False, allow_exported: bool = False) -> None:
     global _RUNNER
@@ -244,12 +286,9 @@ def evaluate(checkpoint: str, env_id: str | None = None, env_kwargs: Mapping[str
             finally:
                 runner.close()
         else:
-            ctx = mp.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_worker,
-                                     initargs=(str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample,
-                                               allow_exported)) as pool:
-                for fut in as_completed([pool.submit(_run_job, j) for j in jobs]):
-                    done(fut.result())
+            run_pooled(min(workers, len(jobs)), _init_worker,
+                       (str(checkpoint), env_id, dict(env_kwargs or {}), opps, sample, allow_exported), _run_job, jobs,
+                       done)
     finally:
         if bar is not None:
             bar.stop()
@@ -503,24 +542,23 @@ def round_robin(players: Sequence[str], matches: int = 20, env_id: str | None = 
                        transient=False)
         task = bar.add_task("", total=len(jobs))
         bar.start()
+
+    def taken(r: PairResult) -> None:
+        results.append(r)
+        if bar is not None:
+            bar.update(task, advance=1)
+
     try:
         if workers <= 1:
             try:
                 for j in jobs:
-                    results.append(probe.run(j))
-                    if bar is not None:
-                        bar.update(task, advance=1)
+                    taken(probe.run(j))
             finally:
                 probe.close()
         else:
             probe.close()
-            ctx = mp.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx, initializer=_init_rr_worker,
-                                     initargs=(players, env_id, dict(env_kwargs or {}), allow_exported)) as pool:
-                for fut in as_completed([pool.submit(_run_pair, j) for j in jobs]):
-                    results.append(fut.result())
-                    if bar is not None:
-                        bar.update(task, advance=1)
+            run_pooled(min(workers, len(jobs)), _init_rr_worker, (players, env_id, dict(env_kwargs or {}), allow_exported),
+                       _run_pair, jobs, taken)
     finally:
         if bar is not None:
             bar.stop()
