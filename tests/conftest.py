@@ -17,6 +17,14 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def own_process_group() -> dict:
+    """``subprocess.Popen`` arguments for a child in a process group of its own, in this session
+    (a signal to the group reaches it and its children, as a terminal's Ctrl-C does; a new
+    session would also put it in a scheduler autogroup of its own, which starves the test's
+    other commands while it runs)."""
+    return {"process_group": 0} if sys.version_info >= (3, 11) else {"preexec_fn": os.setpgrp}
+
+
 def free_port() -> int:
     from zenrl.launcher import free_port as fp
 

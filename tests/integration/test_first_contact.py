@@ -9,6 +9,7 @@ exit code, what it prints and what it leaves on disk.
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -17,7 +18,7 @@ import time
 
 import pytest
 
-from tests.conftest import ROOT, free_port, wait_until, zenrl_pids
+from tests.conftest import ROOT, free_port, own_process_group, wait_until, zenrl_pids
 
 pytestmark = pytest.mark.integration
 
@@ -87,7 +88,10 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
     run_dir = tmp_path / run_id
     cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=120",
                                                           "evaluator.interval_s=1")]
-    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # a process group of its own (not a session: the kernel's autogroups would schedule the run
+    # apart from the status commands below): Ctrl-C is sent to the whole group, as a terminal does
+    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                **own_process_group())
     try:
         wait_until(lambda: (run_dir / "launcher.json").is_file(), 30, "launcher.json")
 
@@ -107,7 +111,9 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
         for role in ("replay", "learner", "actor", "evaluator"):
             assert role in table.stdout
         assert "env steps/s" in table.stdout and "return" in table.stdout, table.stdout
-        launcher.send_signal(signal.SIGINT)  # what Ctrl-C sends
+        # what Ctrl-C sends: SIGINT to every process of the group; the launcher forwards SIGTERM too,
+        # so each child gets two signals at once (which once deadlocked a child's stop handler)
+        os.killpg(launcher.pid, signal.SIGINT)
         out, _ = launcher.communicate(timeout=90)
     finally:
         if launcher.poll() is None:
@@ -115,6 +121,7 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
             launcher.wait()
     assert launcher.returncode == 0, out[-3000:]
     assert "stopped: interrupted by user (Ctrl-C)" in out, out[-2000:]
+    assert "did not stop within" not in out, out[-3000:]  # every child stopped by itself
     assert not ZENOH_NOISE.search(out), out[-2000:]
     first = json.loads((run_dir / "summary.json").read_text())
     assert first["stop_reason"] == "interrupted by user (Ctrl-C)"

@@ -29,7 +29,7 @@ from zenrl.common.policy_io import load_policy, read_checkpoint, sampled_actions
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.checkpoint import save_checkpoint
 from zenrl import tools
-from tests.conftest import wait_until
+from tests.conftest import own_process_group, wait_until
 
 # a match of 3 s + 1 s sudden death at 5 decisions/s: at most 20 steps
 SHORT_MATCH = {"match_time": 3.0, "sudden_death_time": 1.0, "control_hz": 5, "opponents": ["cheese"],
@@ -706,7 +706,7 @@ def test_evaluate_with_workers_stops_on_a_signal_to_its_group(ckpts, sig):
     # the pool's queue lock until killed; after SIGTERM its workers lived on as orphans)
     cmd = [sys.executable, "-m", "zenrl.cli", "evaluate", "--checkpoint", str(ckpts["cartpole"]),
            "--episodes", "100000", "--workers", "2", "--no-progress"]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **own_process_group())
     try:
         # both workers started (spawn: fresh interpreters), then a moment for them to take jobs
         wait_until(lambda: len([c for c in _children(p.pid)
