@@ -111,6 +111,11 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
         for role in ("replay", "learner", "actor", "evaluator"):
             assert role in table.stdout
         assert "env steps/s" in table.stdout and "return" in table.stdout, table.stdout
+        # a second launcher on the same folder while it runs: refused at once, the run untouched
+        for again in (["run", "--resume", str(run_dir), "--no-progress"], [*run_args(tmp_path, run_id), "--no-progress"]):
+            p = zenrl(*again, timeout_s=60)
+            assert p.returncode == 2 and "is in use by another zenrl run (launcher pid" in p.stderr, p.stderr[-2000:]
+        assert launcher.poll() is None and (run_dir / "launcher.json").is_file()
         # what Ctrl-C sends: SIGINT to every process of the group; the launcher forwards SIGTERM too,
         # so each child gets two signals at once (which once deadlocked a child's stop handler)
         os.killpg(launcher.pid, signal.SIGINT)
@@ -128,6 +133,9 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
     assert not (run_dir / "launcher.json").exists()
     ended = zenrl("status", str(run_dir))
     assert ended.returncode == 1 and "not running" in ended.stderr and "Ctrl-C" in ended.stderr, ended.stderr
+    fresh = zenrl(*run_args(tmp_path, run_id), "--no-progress", timeout_s=60)  # the same id, not --resume
+    assert fresh.returncode == 2 and "holds a run already" in fresh.stderr and "--resume" in fresh.stderr, fresh.stderr
+    assert json.loads((run_dir / "summary.json").read_text()) == first  # untouched
     no_run = zenrl("status")
     assert no_run.returncode == 2 and "which run?" in no_run.stderr and "default" not in no_run.stdout
 

@@ -1,6 +1,7 @@
 """The files ``zenrl run`` keeps in ``runs/<run-id>/`` besides the processes' own:
-``launcher.json`` (where a running launcher's router listens, for ``zenrl status runs/<id>``)
-and ``summary.json`` (how the run went, over every segment of a resumed run)."""
+``launcher.json`` (where a running launcher's router listens, for ``zenrl status runs/<id>``),
+``summary.json`` (how the run went, over every segment of a resumed run) and ``.lock`` (held by
+the running launcher, so that no second one writes the same folder)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,16 @@ import re
 from pathlib import Path
 from typing import Any
 
+from zenrl.common.errors import ConfigError
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no run-folder lock
+    fcntl = None  # type: ignore[assignment]
+
 LAUNCHER_FILE = "launcher.json"
 SUMMARY_FILE = "summary.json"
+LOCK_FILE = ".lock"
 
 _ERROR_LINE = re.compile(r"^(zenrl: error: |[A-Za-z_][\w.]*(Error|Exception|Exit)\b)|\s(ERROR|CRITICAL)\s")
 
@@ -43,6 +52,38 @@ def remove_launcher_info(run_dir: Path) -> None:
         (run_dir / LAUNCHER_FILE).unlink()
     except FileNotFoundError:
         pass
+
+
+def lock_run_folder(run_dir: Path) -> int | None:
+    """Take ``run_dir``'s lock for this launch (created if need be): an ``flock`` on its
+    ``.lock``, which the OS lets go however the process ends (no stale lock after a crash or
+    SIGKILL). Returns the descriptor to close when the launch is over (None where there is no
+    ``flock``). Raises ConfigError when another process holds it: a second ``zenrl run`` on the
+    same folder (``--resume`` of a run that is still running, or the same ``--run-id``) would
+    write the same checkpoints, logs and summary as the first."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:
+        return None
+    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        info = read_launcher_info(run_dir) or {}
+        who = f" (launcher pid {info['pid']})" if isinstance(info.get("pid"), int) else ""
+        raise ConfigError(f"run folder {run_dir} is in use by another zenrl run{who}: stop that one first "
+                          f"(zenrl status {run_dir} shows it)") from None
+    return fd
+
+
+def unlock_run_folder(fd: int | None) -> None:
+    if fd is not None:
+        os.close(fd)
+
+
+def holds_a_run(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds a run already (its launcher wrote ``config.yaml`` there)."""
+    return (run_dir / "config.yaml").is_file()
 
 
 def read_summary(run_dir: Path) -> dict[str, Any] | None:

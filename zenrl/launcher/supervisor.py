@@ -24,8 +24,9 @@ from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError
 from zenrl.launcher.display import Progress, render_table
-from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, last_error_line, read_summary,
-                                      remove_launcher_info, write_json_atomic, write_launcher_info)
+from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
+                                      read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
+                                      write_launcher_info)
 from zenrl.placement import describe, plan, usable_cpus
 
 log = logging.getLogger("zenrl.launcher")
@@ -494,4 +495,12 @@ def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | N
         check_league(cfg)
     if exporter_port is not None and not _port_free("0.0.0.0", exporter_port):
         raise ConfigError(f"--exporter-port {exporter_port}: the port is in use")
-    return Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port).run()
+    launcher = Launcher(cfg, resume=resume_dir is not None, exporter_port=exporter_port)
+    lock = lock_run_folder(launcher.run_dir)  # held until this launch is over
+    try:
+        if resume_dir is None and holds_a_run(launcher.run_dir):
+            raise ConfigError(f"run folder {launcher.run_dir} holds a run already (run id {launcher.run_id!r}): "
+                              f"continue it with zenrl run --resume {launcher.run_dir}, or give another --run-id")
+        return launcher.run()
+    finally:
+        unlock_run_folder(lock)
