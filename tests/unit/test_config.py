@@ -31,6 +31,17 @@ def test_errors_name_option_and_value(tmp_path):
         load_config(bad, environ={})
     with pytest.raises(ConfigError, match="network.hidden"):
         load_config(None, ["network.hidden=[]"], environ={})
+    with pytest.raises(ConfigError, match="is a directory$"):
+        load_config(tmp_path, environ={})
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("learner:\n  lr: 1e-3\n    batch_size: 2\n")
+    with pytest.raises(ConfigError, match=r"is not valid YAML: mapping values are not allowed here \(line 3, column 15\)$") as e:
+        load_config(broken, environ={})
+    assert "\n" not in str(e.value)  # one line, not PyYAML's three
+    binary = tmp_path / "model.pt"
+    binary.write_bytes(b"PK\x03\x04\xd0\xff\xfe")
+    with pytest.raises(ConfigError, match="cannot be read: 'utf-8' codec can't decode"):
+        load_config(binary, environ={})
     with pytest.raises(ConfigError, match="must look like"):
         load_config(None, ["nonsense"], environ={})
     with pytest.raises(ConfigError, match=r"evaluator\.policy 'sample' needs algo a3c"):

@@ -54,3 +54,10 @@ def test_a_folder_holds_a_run_once_it_has_its_config(tmp_path):
     assert not holds_a_run(tmp_path / "r2") and os.path.isdir(tmp_path / "r2")
     (tmp_path / "r2" / "config.yaml").write_text("algo: apex\n")
     assert holds_a_run(tmp_path / "r2")
+
+
+def test_a_runs_dir_that_cannot_hold_folders_is_named(tmp_path):
+    f = tmp_path / "a-file"
+    f.write_text("")
+    with pytest.raises(ConfigError, match=rf"cannot use the run folder .* \(runs_dir '{f}'\): Not a directory"):
+        lock_run_folder(f / "run1")

@@ -60,11 +60,16 @@ def lock_run_folder(run_dir: Path) -> int | None:
     SIGKILL). Returns the descriptor to close when the launch is over (None where there is no
     ``flock``). Raises ConfigError when another process holds it: a second ``zenrl run`` on the
     same folder (``--resume`` of a run that is still running, or the same ``--run-id``) would
-    write the same checkpoints, logs and summary as the first."""
-    run_dir.mkdir(parents=True, exist_ok=True)
-    if fcntl is None:
-        return None
-    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    write the same checkpoints, logs and summary as the first; and when the folder cannot be
+    made or written."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if fcntl is None:
+            return None
+        fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:  # runs_dir under a file, read-only, not ours, ...
+        raise ConfigError(f"cannot use the run folder {run_dir} (runs_dir {str(run_dir.parent)!r}): "
+                          f"{e.strerror or e}") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
