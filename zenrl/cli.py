@@ -63,6 +63,31 @@ def _float_above(lo: float, at_most: float | None = None, *, or_equal: bool = Fa
     return parse
 
 
+def _output_file(text: str) -> str:
+    """An argparse type: a file this command may write, checked before the work that makes it
+    (an evaluation or a match is not run to be lost on a mistyped path): not a directory, in an
+    existing directory, and opened for appending once (a file that was not there is removed
+    again)."""
+    path = os.path.abspath(text)
+    parent = os.path.dirname(path)
+    if os.path.isdir(path):
+        raise argparse.ArgumentTypeError(f"{text!r} is a directory, not a file")
+    if not os.path.isdir(parent):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: no directory {parent!r}")
+    existed = os.path.exists(path)
+    try:  # the one sure test (root passes access checks that the filesystem still refuses)
+        with open(path, "ab"):
+            pass
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {e.strerror or e}") from None
+    if not existed:
+        try:
+            os.unlink(path)
+        except FileNotFoundError:  # another process's check removed it first
+            pass
+    return text
+
+
 def setup_logging(level: str = "INFO", role: str = "") -> None:
     fmt = f"%(asctime)s %(levelname)s {role + ' ' if role else ''}%(name)s: %(message)s"
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, stream=sys.stderr)
@@ -435,11 +460,9 @@ def _json_arg(text: str | None) -> dict:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    import json
-
     from rich.console import Console
 
-    from zenrl import tools
+    from zenrl import strict_json, tools
 
     setup_logging(args.log_level, "evaluate")
     tools.quiet_native_imports()
@@ -454,7 +477,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     Console(width=None if sys.stdout.isatty() else 120).print(tools.render_table(summary))
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(summary, f, indent=1, default=float)
+            f.write(strict_json.dumps(summary, indent=1, default=float))
     brief = {k: v for k, v in summary.items() if k != "results"}
     tools.print_json_line(brief)
     return 0
@@ -462,11 +485,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _round_robin(args: argparse.Namespace) -> int:
     """``zenrl evaluate --round-robin A,B,...``: every pair plays --episodes matches."""
-    import json
-
     from rich.console import Console
 
-    from zenrl import tools
+    from zenrl import strict_json, tools
 
     if args.policy != "greedy":
         raise ZenrlError("--round-robin plays greedy policies only (no --policy sample)")
@@ -480,7 +501,7 @@ def _round_robin(args: argparse.Namespace) -> int:
         console.print(table)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(summary, f, indent=1, default=float)
+            f.write(strict_json.dumps(summary, indent=1, default=float))
     tools.print_json_line({k: v for k, v in summary.items() if k != "results"})
     return 0
 
@@ -694,14 +715,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=_int_at_least(0), default=2_000_000, help="first episode seed")
     s.add_argument("--policy", choices=("greedy", "sample"), default="greedy",
                    help="greedy: argmax; sample: draw from an a3c checkpoint's action distribution (seeded per episode)")
-    s.add_argument("--json", metavar="OUT", help="also write the full results (every episode) as JSON here")
+    s.add_argument("--json", metavar="OUT", type=_output_file, help="also write the full results (every episode) as JSON here")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_evaluate)
 
     s = sub.add_parser("play", help="render one greedy episode to a GIF or MP4")
     policy_args(s)
     s.add_argument("--exported", action="store_true", help=exported_help)
-    s.add_argument("--out", required=True, help="output file, .gif (pillow) or .mp4 (imageio-ffmpeg)")
+    s.add_argument("--out", required=True, type=_output_file, help="output file, .gif (pillow) or .mp4 (imageio-ffmpeg)")
     s.add_argument("--opponent", help="match opponent (default: drawn from the env's opponents)")
     s.add_argument("--side", choices=["red", "blue"], help="match side (default: the env's)")
     s.add_argument("--seed", type=_int_at_least(0), default=0, help="episode seed")
@@ -714,14 +735,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("plot", help="learning curves of a run (metrics.jsonl) as a PNG")
     s.add_argument("run_dir", help="runs/<id> (or a metrics.jsonl file)")
-    s.add_argument("--out", default="curves.png", help="output PNG")
+    s.add_argument("--out", default="curves.png", type=_output_file, help="output PNG")
     s.add_argument("--size", default="1200x800", help="WIDTHxHEIGHT in pixels")
     s.add_argument("--log-level", default="WARNING")
     s.set_defaults(func=cmd_plot)
 
     s = sub.add_parser("export", help="the greedy policy as a TorchScript file (torch.jit.load, no zenrl needed)")
     policy_args(s)
-    s.add_argument("--out", required=True, help="output .pt file")
+    s.add_argument("--out", required=True, type=_output_file, help="output .pt file")
     s.add_argument("--member", action="append", default=[], metavar="CHECKPOINT",
                    help="another checkpoint of the same env (repeatable): the file is a mixed policy, one member "
                         "(drawn uniformly) playing each match")
@@ -744,7 +765,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ckpt-*.pt files of one run, or a run folder (runs/<id>) or checkpoints folder")
     s.add_argument("--last", type=_int_at_least(1), default=None, metavar="K",
                    help="for a folder: its newest K checkpoints (default: all)")
-    s.add_argument("--out", required=True, help="output checkpoint file (not in a checkpoints folder you resume from)")
+    s.add_argument("--out", required=True, type=_output_file, help="output checkpoint file (not in a checkpoints folder you resume from)")
     s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
     s.set_defaults(func=cmd_average)
     return p

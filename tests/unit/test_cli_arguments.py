@@ -27,6 +27,13 @@ from zenrl.cli import build_parser
     (["average", "x", "--out", "y", "--last", "0"], "--last", ">= 1"),
     (["credentials", "--out", "d", "--actors", "-3"], "--actors", ">= 1"),
     (["status", "--wait", "-1"], "--wait", ">= 0"),
+    # output files are checked before the work that makes them (an evaluation is not run to be lost)
+    (["evaluate", "--checkpoint", "x", "--json", "/nonexistent-dir/x.json"], "--json", "no directory '/nonexistent-dir'"),
+    (["evaluate", "--checkpoint", "x", "--json", "/proc/x.json"], "--json", "cannot write '/proc/x.json'"),
+    (["play", "--checkpoint", "x", "--out", "/"], "--out", "is a directory"),
+    (["export", "--checkpoint", "x", "--out", "/nonexistent-dir/p.pt"], "--out", "no directory"),
+    (["average", "x", "--out", "/proc/a.pt"], "--out", "cannot write"),
+    (["plot", "x", "--out", "/proc/c.png"], "--out", "cannot write"),
 ])
 def test_out_of_range_values_are_one_line_errors(capsys, argv, option, why):
     with pytest.raises(SystemExit) as e:
@@ -42,3 +49,13 @@ def test_in_range_values_parse():
     assert (a.fps, a.seed, a.max_steps) == (12.5, 0, 1)
     a = build_parser().parse_args(["exporter", "--run-id", "r", "--port", "65535"])
     assert a.port == 65535
+
+
+def test_an_output_file_checked_up_front_is_left_as_it_was(tmp_path):
+    new = tmp_path / "new.gif"
+    a = build_parser().parse_args(["play", "--checkpoint", "x", "--out", str(new)])
+    assert a.out == str(new) and not new.exists()  # opened to test it, removed again
+    old = tmp_path / "old.json"
+    old.write_text('{"kept": true}')
+    build_parser().parse_args(["evaluate", "--checkpoint", "x", "--json", str(old)])
+    assert old.read_text() == '{"kept": true}'  # not truncated by the check

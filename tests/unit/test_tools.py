@@ -728,3 +728,18 @@ def test_evaluate_with_workers_stops_on_a_signal_to_its_group(ckpts, sig):
     assert err.strip().splitlines()[-1] == "zenrl: interrupted", err[-2000:]
     assert "Traceback" not in err, err[-3000:]
     wait_until(lambda: not any(_alive(w) for w in workers), 10, "the workers to end")
+
+
+def test_evaluate_json_of_one_episode_is_strict_json(ckpts, tmp_path, capsys):
+    # one episode has no confidence interval: null in the output, not NaN (which JSON does not
+    # have: JavaScript's JSON.parse and jq refuse the document)
+    out = tmp_path / "one.json"
+    assert cli_main(["evaluate", "--checkpoint", str(ckpts["cartpole"]), "--episodes", "1", "--workers", "1",
+                     "--no-progress", "--json", str(out)]) == 0
+
+    def refuse(name):
+        raise AssertionError(f"{name} in the JSON")
+
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1], parse_constant=refuse)
+    full = json.loads(out.read_text(), parse_constant=refuse)
+    assert last["rows"][0]["return_ci95"] == [None, None] == full["rows"][0]["return_ci95"], last["rows"][0]

@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from zenrl import strict_json
 from zenrl.common import protocol as P
 from zenrl.common.errors import RemoteTimeout, TransportError
 from zenrl.common.ratings import PairRecord, fit_ratings
@@ -108,7 +109,7 @@ def league_status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, cl
     out = {"run_id": run_id, "router": where, "players": rows, "values": table.values,
            **({"ratings_error": why} if why else {})}
     if as_json:
-        sys.stdout.write(json.dumps(out, default=float) + "\n")
+        sys.stdout.write(strict_json.dumps(out, default=float) + "\n")
         return 0
     from rich.console import Console
     from rich.table import Table

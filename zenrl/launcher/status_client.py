@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from zenrl import strict_json
 from zenrl.common import protocol as P
 
 #: (stats field holding a running total, unit) per role: the rate is its change per second
@@ -179,7 +180,7 @@ def status(endpoint: str, run_id: str, connect_timeout_s: float = 5.0, client_co
                           **({"eval_win_rate": rec["win_rate"]} if isinstance(rec.get("win_rate"), (int, float)) else {})})
     out = {"run_id": run_id, "router": endpoint, "processes": rows}
     if as_json:
-        sys.stdout.write(json.dumps(out, default=float) + "\n")
+        sys.stdout.write(strict_json.dumps(out, default=float) + "\n")
     elif not rows:
         sys.stderr.write(f"zenrl status: no live process of run {run_id!r} at {endpoint}\n")
     else:

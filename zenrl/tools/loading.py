@@ -4,7 +4,6 @@ machine-readable output."""
 from __future__ import annotations
 
 import ctypes
-import json
 import logging
 import os
 import sys
@@ -13,6 +12,7 @@ from typing import Any, Mapping, Sequence
 
 import gymnasium as gym
 
+from zenrl import strict_json
 from zenrl.common.config import EnvConfig, RunConfig, config_from_dict
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
@@ -133,8 +133,8 @@ def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = Non
     return policy, env, cfg
 
 def print_json_line(obj: Any, stream=None) -> None:
-    """One compact JSON line (the last stdout line of the tools is machine-readable)."""
-    (stream or sys.stdout).write(json.dumps(obj, default=float) + "\n")
+    """One compact JSON line (the last stdout line of the tools is machine-readable; no NaN)."""
+    (stream or sys.stdout).write(strict_json.dumps(obj, default=float) + "\n")
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
