@@ -124,6 +124,10 @@ def replay_children(shards: int, prefix: str = "", **kw: Any) -> list[Child]:
     return [Child(f"{prefix}replay-{k}", "replay", ["--shard", str(k), "--id", f"replay-{k}"], **kw) for k in range(shards)]
 
 
+#: a Ctrl-C this long after the first (or later) kills what has not stopped yet
+HURRY_AFTER_S = 0.5
+
+
 class Launcher:
     def __init__(self, cfg: RunConfig, resume: bool = False, exporter_port: int | None = None) -> None:
         self.exporter_port = exporter_port  # also start `zenrl exporter` there (Prometheus metrics)
@@ -132,6 +136,9 @@ class Launcher:
         self.resume = resume
         self.run_dir = Path(cfg.runs_dir) / self.run_id
         self.stop = threading.Event()
+        #: a second Ctrl-C while stopping: kill what has not stopped yet instead of waiting
+        self.hurry = threading.Event()
+        self._first_interrupt: float | None = None
         before = read_summary(self.run_dir) if resume else None
         self.earlier = earlier_segments(before)
         self.earlier_evals = [e for e in (before or {}).get("evals", []) if isinstance(e, dict)]
@@ -282,10 +289,11 @@ class Launcher:
             for c in group:
                 if c.proc is None:
                     continue
-                try:
-                    c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    log.warning("%s did not stop within %.0f s; killing it", c.name, grace_s)
+                while c.proc.poll() is None and time.monotonic() < deadline and not self.hurry.is_set():
+                    self.hurry.wait(min(0.05, max(0.0, deadline - time.monotonic())))
+                if c.proc.poll() is None:
+                    if not self.hurry.is_set():
+                        log.warning("%s did not stop within %.0f s; killing it", c.name, grace_s)
                     c.proc.kill()
                     c.proc.wait()
 
@@ -304,7 +312,16 @@ class Launcher:
 
     def _on_signal(self, signum: int) -> None:
         # called on the stop-signal relay's thread (zenrl.common.signals), not in a signal handler
+        if signum == signal.SIGINT and self._first_interrupt is not None:
+            # one Ctrl-C can arrive twice at once (`timeout -s INT` signals the process and its
+            # group): only a press a moment later is a second one
+            if time.monotonic() - self._first_interrupt >= HURRY_AFTER_S and not self.hurry.is_set():
+                log.warning("Ctrl-C again: killing the processes that have not stopped yet (their last "
+                            "checkpoint or log flush may be missing)")
+                self.hurry.set()
+            return
         if signum == signal.SIGINT:
+            self._first_interrupt = time.monotonic()
             self._stop_with("interrupted by user (Ctrl-C)")
         else:
             self._stop_with(f"stopped by {signal.Signals(signum).name} (e.g. docker stop, kill)")
