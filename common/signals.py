@@ -51,13 +51,19 @@ class _Relay:
                 return
             for signum in data:
                 cb = self.callback
-                if cb is None or signum not in _STOP_NUMBERS:  # another signal with a Python handler
+                if signum not in _STOP_NUMBERS:  # another signal with a Python handler
+                    continue
+                stopping.set()
+                if cb is None:
                     continue
                 try:
                     cb(signum)
                 except Exception:  # noqa: BLE001 - a failing callback must not end the relay
                     log.exception("handling signal %d failed", signum)
 
+
+#: set once this process got a stop signal: a wait at start-up (for the router) gives up on it
+stopping = threading.Event()
 
 _relay: _Relay | None = None
 _relay_lock = threading.Lock()

@@ -29,6 +29,7 @@ from typing import Any, Callable, Iterable
 
 import zenoh
 
+from zenrl.common import signals
 from zenrl.common.errors import RemoteTimeout, TransportError
 
 log = logging.getLogger(__name__)
@@ -167,10 +168,42 @@ def open_session(endpoint: str | None = None, connect_timeout_s: float = 30.0,
     """Open a client session to the router (see :func:`router_endpoint`)."""
     init_zenoh_logging()
     ep = router_endpoint(endpoint)
-    try:
-        return zenoh.open(client_config(ep, connect_timeout_s, extra, config_file))
-    except zenoh.ZError as e:
+    cfg = client_config(ep, connect_timeout_s, extra, config_file)
+    # zenoh.open waits for the router (up to connect_timeout_s) in native code; it runs on a
+    # thread of its own so that a stop signal meanwhile (Ctrl-C on a mistyped --router, a
+    # container stopped while its router is down) ends the wait at once
+    done = threading.Event()
+    lock = threading.Lock()
+    box: dict[str, Any] = {}
+
+    def opener() -> None:
+        try:
+            s = zenoh.open(cfg)
+        except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
+            box["error"] = e
+            done.set()
+            return
+        with lock:
+            late = box.get("abandoned", False)
+            if not late:
+                box["session"] = s
+        if late:  # nobody waits for it any more: close it, never leave a session open
+            s.close()
+        done.set()
+
+    threading.Thread(target=opener, name="zenoh-open", daemon=True).start()
+    while not done.wait(0.1):
+        if signals.stopping.is_set():
+            with lock:
+                if "session" not in box:
+                    box["abandoned"] = True
+                    raise TransportError(f"stopped while waiting for the Zenoh router at {ep}")
+    if "session" in box:
+        return box["session"]
+    e = box.get("error")
+    if isinstance(e, zenoh.ZError):
         raise TransportError(f"could not connect to the Zenoh router at {ep}: {e}") from e
+    raise e if e is not None else TransportError(f"could not connect to the Zenoh router at {ep}")
 
 
 def config_section(path: str, key: str) -> Any:

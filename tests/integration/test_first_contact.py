@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -154,3 +155,33 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
     assert s["stop_reason"].startswith(f"max_env_steps {steps0 + 5000} reached")
     assert len(s["evals"]) >= len(first["evals"]) and s["evals"][:len(first["evals"])] == first["evals"]
     assert not zenrl_pids(run_id)
+
+
+def test_a_role_waiting_for_its_router_stops_at_once(tmp_path):
+    """A mistyped --router (or a router that is down) keeps a role waiting up to
+    transport.connect_timeout_s; Ctrl-C or SIGTERM meanwhile ends the wait at once, in one line."""
+    dead = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    p = subprocess.Popen([sys.executable, "-m", "zenrl.cli", "replay", "--config", CONFIG, "--run-id", "nowhere",
+                          "--router", dead, "--set", "transport.connect_timeout_s=60"], cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        def opening() -> bool:  # Zenoh's runtime threads exist: zenoh.open is waiting for the router
+            try:
+                names = [(t / "comm").read_text().strip() for t in Path(f"/proc/{p.pid}/task").iterdir()]
+            except OSError:
+                return False
+            return "net-0" in names
+
+        wait_until(lambda: opening() or p.poll() is not None, 60, "the replay to wait for its router")
+        assert p.poll() is None, p.communicate()
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=30)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert took < 5, f"{took:.1f} s after SIGTERM"
+    assert p.returncode == 2, (p.returncode, err[-2000:])
+    assert err.strip().splitlines()[-1] == f"zenrl: error: stopped while waiting for the Zenoh router at {dead}", err[-2000:]
