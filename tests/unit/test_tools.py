@@ -691,6 +691,16 @@ def _children(pid: int) -> set[int]:
         return set()
 
 
+def _ignores_sigint(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        cmd = Path(f"/proc/{pid}/cmdline").read_text(errors="replace")
+    except OSError:
+        return False
+    mask = next((int(x.split()[1], 16) for x in status.splitlines() if x.startswith("SigIgn:")), 0)
+    return "spawn_main" in cmd and bool(mask & (1 << (signal.SIGINT - 1)))
+
+
 def _alive(pid: int) -> bool:
     try:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
@@ -708,13 +718,12 @@ def test_evaluate_with_workers_stops_on_a_signal_to_its_group(ckpts, sig):
            "--episodes", "100000", "--workers", "2", "--no-progress"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **own_process_group())
     try:
-        # both workers started (spawn: fresh interpreters), then a moment for them to take jobs
-        wait_until(lambda: len([c for c in _children(p.pid)
-                                if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text(errors="replace")]) >= 2
-                   if p.poll() is None else True, 60, "evaluation workers")
+        # both workers set up (they ignore SIGINT from then on: bit 2 of SigIgn), taking jobs
+        wait_until(lambda: len([c for c in _children(p.pid) if _ignores_sigint(c)]) >= 2
+                   if p.poll() is None else True, 120, "evaluation workers")
         assert p.poll() is None, p.communicate()
         workers = _children(p.pid)
-        time.sleep(3.0)
+        time.sleep(1.0)
         if sig == "SIGINT":
             os.killpg(p.pid, signal.SIGINT)
         else:

@@ -11,7 +11,7 @@ import os
 import signal
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -152,14 +152,36 @@ def _init_pool_worker(initializer: Callable[..., None], initargs: tuple[Any, ...
 def run_pooled(workers: int, initializer: Callable[..., None], initargs: tuple[Any, ...],
                fn: Callable[[Any], Any], jobs: Sequence[Any], on_result: Callable[[Any], None]) -> None:
     """``on_result(fn(job))`` for every job, as each finishes, in ``workers`` ``spawn``
-    processes set up by ``initializer(*initargs)``. An exception here (a job's, or Ctrl-C's
-    KeyboardInterrupt) stops the pool at once: the jobs not started are cancelled and the
-    workers terminated, not waited for; then it is raised."""
+    processes set up by ``initializer(*initargs)``, with at most two jobs per worker queued at a
+    time. Ctrl-C or SIGTERM (noted by a handler that only records it: an exception raised inside
+    the pool's own calls, a submit or its wake-up pipe, could leave it unable to shut down, and
+    the interpreter's exit waiting for it), or an exception (a job's), stops the pool at once:
+    the queued jobs are cancelled and the workers terminated, not waited for; then
+    KeyboardInterrupt, or that exception, is raised."""
+    noted: list[int] = []
+    before: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            before[sig] = signal.signal(sig, lambda signum, _frame: noted.append(signum))  # no lock taken
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
                                initializer=_init_pool_worker, initargs=(initializer, initargs))
     try:
-        for fut in as_completed([pool.submit(fn, j) for j in jobs]):
-            on_result(fut.result())
+        todo = iter(jobs)
+        queued: set[Any] = set()
+        more = True
+        while True:
+            while more and len(queued) < 2 * workers and not noted:
+                job = next(todo, _NO_JOB)
+                more = job is not _NO_JOB
+                if more:
+                    queued.add(pool.submit(fn, job))
+            if noted:
+                raise KeyboardInterrupt
+            if not queued:
+                break
+            done, queued = wait(queued, timeout=0.2, return_when=FIRST_COMPLETED)
+            for fut in done:
+                on_result(fut.result())
     except BaseException:
         procs = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
@@ -167,8 +189,17 @@ def run_pooled(workers: int, initializer: Callable[..., None], initargs: tuple[A
             p.terminate()
         for p in procs:
             p.join(5)
+        if noted:  # whatever surfaced first (a worker hit by the same Ctrl-C breaks the pool)
+            raise KeyboardInterrupt from None
         raise
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
     pool.shutdown()
+
+
+#: the end of the jobs (a job may be any value, None too)
+_NO_JOB = object()
 
 
 def _init_worker(checkpoint: str, env_id: str | None, env_kwargs: Mapping[str, Any] | None,
