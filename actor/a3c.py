@@ -49,7 +49,7 @@ class A3CWorker(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        n_actions = num_actions(envs.single_action_space)
+        n_actions = num_actions(envs.single_action_space, cfg.algo)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, worker_id, slot,
                                       lambda: ActorCritic(spec, n_actions, cfg.network))

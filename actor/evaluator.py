@@ -33,7 +33,7 @@ from zenrl.common import protocol as P
 from zenrl.common.checkpoints import training_state_class
 from zenrl.common.config import RunConfig
 from zenrl.common.metrics import MetricsWriter
-from zenrl.common.networks import num_actions, obs_spec, set_compute_threads
+from zenrl.common.networks import action_size, obs_spec, set_compute_threads
 from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.transport import Node
 
@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 def build_policy_net(cfg: RunConfig, envs: EnvBatch) -> torch.nn.Module:
     """The run's policy network (Q network or actor-critic) for ``envs``, in eval mode."""
     spec = obs_spec(envs.single_observation_space)
-    n = num_actions(envs.single_action_space)
+    n = action_size(envs.single_action_space, cfg.algo)
     return training_state_class(cfg.algo).run_policy_network(spec, n, cfg).eval()
 
 
@@ -61,7 +61,7 @@ class Evaluator(ActorWorker):
         set_compute_threads(1)
         envs = EnvBatch(cfg.env, ecfg.episodes, seed=cfg.seed + ecfg.seed_offset)
         self.net = build_policy_net(cfg, envs)
-        n_actions = num_actions(envs.single_action_space)
+        n_actions = int(action_size(envs.single_action_space, cfg.algo))
         first = cfg.seed + ecfg.seed_offset
         policy: Any
         if ecfg.policy == "sample":

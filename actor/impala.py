@@ -33,7 +33,7 @@ from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, FirstWeights, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
-from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
+from zenrl.common.networks import ActorCritic, obs_spec, policy_actions, set_compute_threads
 from zenrl.common.specs import ArraySpec
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ class ImpalaActor(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        n_actions = num_actions(envs.single_action_space)
+        n_actions = policy_actions(envs.single_action_space)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot,
                                       lambda: ActorCritic(spec, n_actions, cfg.network))
@@ -81,7 +81,7 @@ class ImpalaActor(ActorWorker):
                       cfg.transport.max_message_bytes, None if cfg.actor.compress == "none" else cfg.actor.compress)
         stacked = frame_fields(spec, cfg.actor.frame_stack) if cfg.actor.frames else []
         self.adder: UnrollsToLearner = FramedUnrolls(*adder_args, fields=stacked) if stacked else UnrollsToLearner(*adder_args)
-        policy = Sampling(self.net, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1)),
+        policy = Sampling(self.net, int(n_actions), np.random.default_rng(cfg.seed + 7919 * (slot + 1)),
                           use_numpy=True, with_logp=True)
         super().__init__(keys, actor_id, slot, envs, policy, self.adder, weights,
                          FirstWeights(min(2.0, cfg.transport.query_timeout_s)),

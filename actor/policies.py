@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from zenrl.common.exploration import EpsilonGreedy
-from zenrl.common.networks import NumpyQ, sample_categorical, to_tensors
+from zenrl.common.networks import NumpyQ, gaussian_logp, sample_categorical, to_tensors
 from zenrl.common.policy_io import greedy_actions, sampled_actions
 from zenrl.common.recurrent import NumpyRecurrentQ, RecurrentQNetwork
 
@@ -70,11 +70,21 @@ class QForward:
 
 
 def _explore(actions: np.ndarray, epsilon: float, n_actions: int, rng: np.random.Generator) -> np.ndarray:
-    """Each of the E ``actions`` replaced by a uniform one with probability ``epsilon``."""
+    """Each of the E ``actions`` replaced by a uniform one with probability ``epsilon``: an index
+    in ``0..n_actions-1``, or for continuous actions float32[E, d] a point of [-1, 1]^d."""
     if epsilon > 0:
         r = rng.random(actions.shape[0]) < epsilon
-        actions[r] = rng.integers(0, n_actions, int(r.sum()))
+        if actions.ndim == 2:
+            actions[r] = rng.uniform(-1.0, 1.0, (int(r.sum()), actions.shape[1]))
+        else:
+            actions[r] = rng.integers(0, n_actions, int(r.sum()))
     return actions
+
+
+def _log_std(net: torch.nn.Module) -> np.ndarray:
+    """float64[d]: a Gaussian actor-critic's clamped log standard deviation."""
+    with torch.no_grad():
+        return net.clamped_log_std().double().cpu().numpy()
 
 
 class EpsilonGreedyQ:
@@ -140,7 +150,7 @@ class Greedy:
     """Argmax actions of a Q network or an actor-critic (evaluation), with ``epsilon`` uniform
     actions from its own generator. The selection is :func:`~zenrl.common.policy_io.greedy_actions`
     (what the tools and self-play use); an MLP network takes the numpy route to the same
-    argmax. No extras."""
+    argmax. A Gaussian actor-critic's greedy action is its mean, float32[E, d]. No extras."""
 
     def __init__(self, net: torch.nn.Module, n_actions: int, epsilon: float = 0.0, seed: int = 0,
                  use_numpy: bool = True) -> None:
@@ -156,7 +166,10 @@ class Greedy:
         self.rng = np.random.default_rng(seed)
 
     def act(self, obs: Obs) -> tuple[np.ndarray, None]:
-        a = greedy_actions(self.net, obs) if self.q.fast is None else self.q(obs).argmax(1)
+        if getattr(self.net, "continuous", False):
+            a = self.q(obs).astype(np.float32)
+        else:
+            a = greedy_actions(self.net, obs) if self.q.fast is None else self.q(obs).argmax(1)
         return _explore(a, self.epsilon, self.n_actions, self.rng), None
 
 
@@ -166,23 +179,36 @@ class Sampling:
     ``with_logp`` (IMPALA): then the extras are float32[E] ``log mu(a|x)``, the log-probability
     of each action under the policy that drew it (the epsilon mixture included), which the
     learner's V-trace corrects with. ``use_numpy``: an MLP network's logits come from the numpy
-    forward (:class:`QForward`), the Gumbel-max draw from the same float64 logits either way."""
+    forward (:class:`QForward`), the Gumbel-max draw from the same float64 logits either way.
+
+    A Gaussian actor-critic (continuous actions): float32[E, d] actions ``mean + std * N(0, 1)``
+    (normalised units; the env clips them to [-1, 1]), the log-density of the float32 action as
+    the extras; epsilon then draws uniform points of [-1, 1]^d, and cannot come with
+    ``with_logp`` (the mixture has no density the learner could use)."""
 
     def __init__(self, net: torch.nn.Module, n_actions: int, rng: np.random.Generator, epsilon: float = 0.0,
                  use_numpy: bool = False, with_logp: bool = False) -> None:
         self.net = net
         self.n_actions, self.epsilon, self.rng = n_actions, epsilon, rng
         self.with_logp = with_logp
-        self.q = QForward(net, use_numpy) if (use_numpy or with_logp) else None
+        self.continuous = bool(getattr(net, "continuous", False))
+        if self.continuous and with_logp and epsilon > 0:
+            raise ValueError("a Gaussian policy's behaviour log-densities cannot include epsilon-uniform actions")
+        self.q = QForward(net, use_numpy) if (use_numpy or with_logp or self.continuous) else None
+        self._log_std = _log_std(net) if self.continuous else None
 
     def sync(self) -> None:
         if self.q is not None:
             self.q.sync()
+        if self.continuous:
+            self._log_std = _log_std(self.net)
 
     def reseed(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
 
     def act(self, obs: Obs) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.continuous:
+            return self._act_gaussian(obs)
         if self.q is None:
             return _explore(sampled_actions(self.net, obs, self.rng), self.epsilon, self.n_actions, self.rng), None
         z = self.q(obs).astype(np.float64)
@@ -194,6 +220,14 @@ class Sampling:
         if self.epsilon > 0:  # a ~ (1 - eps) pi + eps uniform
             logp = np.log((1.0 - self.epsilon) * np.exp(logp) + self.epsilon / self.n_actions)
         return a, logp.astype(np.float32)
+
+    def _act_gaussian(self, obs: Obs) -> tuple[np.ndarray, np.ndarray | None]:
+        mean = self.q(obs).astype(np.float64)
+        a = (mean + np.exp(self._log_std) * self.rng.standard_normal(mean.shape)).astype(np.float32)
+        if not self.with_logp:
+            return _explore(a, self.epsilon, self.n_actions, self.rng), None
+        # the density of the float32 action sent, as the learner will evaluate it
+        return a, gaussian_logp(mean, self._log_std, a.astype(np.float64)).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------

@@ -116,7 +116,7 @@ class R2D2Actor(ActorWorker):
         set_compute_threads(acfg.torch_threads)
         envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
         spec = obs_spec(envs.single_observation_space)
-        n_actions = num_actions(envs.single_action_space)
+        n_actions = num_actions(envs.single_action_space, cfg.algo)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot,
                                       lambda: RecurrentQNetwork(spec, n_actions, cfg.network, rcfg.lstm_size))
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast

@@ -50,7 +50,7 @@ class ApexActor(ActorWorker):
         set_compute_threads(acfg.torch_threads)
         envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
         spec = obs_spec(envs.single_observation_space)
-        n_actions = num_actions(envs.single_action_space)
+        n_actions = num_actions(envs.single_action_space, cfg.algo)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot, lambda: QNetwork(spec, n_actions, cfg.network))
         torch.manual_seed(cfg.seed)  # same initial weights as the learner's before the first broadcast
         net = QNetwork(spec, n_actions, cfg.network).eval()

@@ -59,10 +59,70 @@ def rename_prefix(flat: Mapping[str, np.ndarray], old: str, new: str) -> dict[st
     return out
 
 
-def num_actions(space: gym.Space) -> int:
+class BoxActions(int):
+    """The size d of a continuous action (a 1-D ``Box`` of d dimensions) as the policy head's
+    size, marked as such: an :class:`ActorCritic` built with it has a Gaussian policy over
+    actions normalised to [-1, 1]^d (:func:`zenrl.common.env_factory.make_env` rescales and
+    clips them to the env's bounds)."""
+
+    def __repr__(self) -> str:
+        return f"BoxActions({int(self)})"
+
+
+#: Largest continuous action accepted (dimensions of a Box action space).
+MAX_BOX_ACTION_DIMS = 256
+
+
+def num_actions(space: gym.Space, algo: str | None = None) -> int:
+    """The number of actions of a ``Discrete`` space (what a Q network or a categorical policy
+    needs); any other space is a :class:`ValueError` naming ``algo`` (the algorithm asking)."""
     if not isinstance(space, gym.spaces.Discrete):
-        raise ValueError(f"zenrl's DQN and A3C need a Discrete action space, got {space}")
+        who = f"algo: {algo}" if algo else "this algorithm"
+        hint = "; algo: impala (IMPALA / APPO) takes continuous (Box) actions" if isinstance(space, gym.spaces.Box) else ""
+        raise ValueError(f"{who} needs a Discrete action space, got {space}{hint}")
     return int(space.n)
+
+
+def policy_actions(space: gym.Space) -> int:
+    """The size of an actor-critic's policy head for ``space``: ``n`` for ``Discrete(n)`` (a
+    categorical policy), :class:`BoxActions` ``(d)`` for a 1-D ``Box`` of d dimensions with finite
+    bounds (a Gaussian policy). :class:`ValueError` naming the space otherwise."""
+    if isinstance(space, gym.spaces.Box):
+        if len(space.shape) != 1 or not 1 <= space.shape[0] <= MAX_BOX_ACTION_DIMS:
+            raise ValueError(f"continuous actions must be a 1-D Box of 1..{MAX_BOX_ACTION_DIMS} dimensions, got {space}")
+        if not (np.isfinite(space.low).all() and np.isfinite(space.high).all()):
+            raise ValueError(f"continuous actions need finite bounds (they are rescaled to [-1, 1]), got {space}")
+        return BoxActions(space.shape[0])
+    return num_actions(space)
+
+
+#: The algorithms whose actor-critic takes continuous (Box) actions.
+CONTINUOUS_ALGOS = frozenset({"impala"})
+
+
+def action_size(space: gym.Space, algo: str) -> int:
+    """The size of ``algo``'s policy (or Q) head for ``space``: :func:`policy_actions` for the
+    algorithms that take continuous actions, :func:`num_actions` (Discrete only) for the others."""
+    return policy_actions(space) if algo in CONTINUOUS_ALGOS else num_actions(space, algo)
+
+
+def is_continuous(n_actions: int) -> bool:
+    """Whether a policy head of this size is a Gaussian one (:class:`BoxActions`)."""
+    return isinstance(n_actions, BoxActions)
+
+
+#: Bounds of a Gaussian policy's log standard deviation (in normalised action units), applied
+#: where it is used: below, the policy could grow arbitrarily sure (and its log-densities
+#: arbitrarily large); above, its samples would almost all be clipped to the bounds.
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def gaussian_logp(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """float64[B]: log-density of ``actions`` [B, d] under independent normals ``mean`` [B, d],
+    ``log_std`` [d] (already clamped), summed over the d dimensions."""
+    z = (actions - mean) / np.exp(log_std)
+    return (-0.5 * z * z - log_std - _HALF_LOG_2PI).sum(axis=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -194,6 +254,8 @@ class NumpyQ:
         self.names = list(net.encoder.names)
         self.act = np.tanh if isinstance(net.trunk[1], nn.Tanh) else None
         self.dueling = isinstance(net, QNetwork) and net.dueling
+        #: a Gaussian actor-critic's mean is the tanh of its policy head
+        self.squash = isinstance(net, ActorCritic) and net.continuous
         self.load(net)
 
     @staticmethod
@@ -229,23 +291,38 @@ class NumpyQ:
         w, b = self.head
         q = h @ w
         q += b
+        if self.squash:
+            np.tanh(q, out=q)
         return q
 
 
 class ActorCritic(nn.Module):
     """Policy and value: ``{name: tensor[B, ...]}`` -> (logits float32[B, A], value float32[B]).
     With ``cfg.shared_torso`` false the value head has its own MLP (``value_trunk``) on the shared
-    encoder."""
+    encoder.
+
+    ``n_actions`` a :class:`BoxActions` ``(d)``: a Gaussian policy over actions normalised to
+    [-1, 1]^d; the first output is then the mean float32[B, d] (``tanh`` of the policy head: a
+    mean outside [-1, 1] would act as its bound, with no gradient to bring it back), and ``log_std`` float32[d] a
+    parameter of its own (state-independent, as in PPO's continuous-control setting), used
+    clamped to [LOG_STD_MIN, LOG_STD_MAX] (:meth:`clamped_log_std`); ``continuous`` says which."""
 
     def __init__(self, spec: Mapping[str, ArraySpec], n_actions: int, cfg: NetworkConfig) -> None:
         super().__init__()
         self.encoder = ObsEncoder(spec, cfg.conv)
         self.trunk, d = mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)
         self.value_trunk = None if cfg.shared_torso else mlp(self.encoder.out_dim, list(cfg.hidden), cfg.activation)[0]
-        self.policy = nn.Linear(d, n_actions)
+        self.continuous = is_continuous(n_actions)
+        self.policy = nn.Linear(d, int(n_actions))
         self.value = nn.Linear(d, 1)
+        if self.continuous:
+            self.log_std = nn.Parameter(torch.full((int(n_actions),), float(cfg.log_std_init)))
         if cfg.orthogonal_init:
             self._orthogonal_init()
+
+    def clamped_log_std(self) -> torch.Tensor:
+        """float32[d]: the Gaussian policy's log standard deviation as used (continuous only)."""
+        return self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
 
     def _orthogonal_init(self) -> None:
         """Orthogonal weights, zero biases: gain sqrt(2) in the MLPs (conv layers keep their
@@ -262,7 +339,10 @@ class ActorCritic(nn.Module):
         z = self.encoder(obs)
         h = self.trunk(z)
         hv = h if self.value_trunk is None else self.value_trunk(z)
-        return self.policy(h), self.value(hv).squeeze(1)
+        out = self.policy(h)
+        if self.continuous:  # the mean stays inside the action range the env clips to
+            out = torch.tanh(out)
+        return out, self.value(hv).squeeze(1)
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import torch
 
 from zenrl.common.checkpoints import TrainingState, read_checkpoint
 from zenrl.common.errors import CheckpointError, ZenrlError
-from zenrl.common.networks import ActorCritic, flat_obs, num_actions, obs_spec, sample_categorical
+from zenrl.common.networks import ActorCritic, action_size, flat_obs, num_actions, obs_spec, sample_categorical
 from zenrl.common.recurrent import RecurrentQNetwork
 
 log = logging.getLogger(__name__)
@@ -42,7 +42,11 @@ def build_network(state: TrainingState, observation_space: gym.Space, action_spa
     in eval mode on the CPU. ``observation_space`` / ``action_space`` are the single env's
     spaces; a mismatch with the trained network is a :class:`CheckpointError` naming the
     difference."""
-    net = state.run_policy_network(obs_spec(observation_space), num_actions(action_space), state.run_config())
+    try:
+        n = action_size(action_space, state.algo)
+    except ValueError as e:
+        raise CheckpointError(f"the checkpoint's policy cannot act in this env: {e}") from None
+    net = state.run_policy_network(obs_spec(observation_space), n, state.run_config())
     try:
         net.load_state_dict(state.policy_state())
     except RuntimeError as e:
@@ -63,11 +67,14 @@ def single_to_flat(obs: Any) -> dict[str, np.ndarray]:
 
 def greedy_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray]) -> np.ndarray:
     """int64[B]: argmax of the Q values (or of the policy logits for an actor-critic) for flat
-    batched observations ``{"obs" | "obs/<key>": array[B, ...]}``."""
+    batched observations ``{"obs" | "obs/<key>": array[B, ...]}``; a Gaussian actor-critic's
+    mean actions float32[B, d] (continuous actions)."""
     with torch.no_grad():
         out = net({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()})
         if isinstance(out, tuple):
             out = out[0]
+        if getattr(net, "continuous", False):
+            return out.float().numpy()
         return out.argmax(1).numpy()
 
 
@@ -91,6 +98,10 @@ def sampled_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray], rng: n
         raise ValueError("sampling actions needs an actor-critic (a3c) network; a Q network is greedy only")
     with torch.no_grad():
         logits = net({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in flat.items()})[0]
+        if net.continuous:  # float32[B, d]: mean + std * N(0, 1)
+            std = net.clamped_log_std().exp().double().numpy()
+            mean = logits.double().numpy()
+            return (mean + std * rng.standard_normal(mean.shape)).astype(np.float32)
     return sample_categorical(logits.double().numpy(), rng)
 
 
@@ -126,11 +137,16 @@ class GreedyPolicy:
         network has none)."""
         self._state = None
 
-    def __call__(self, obs: Any) -> int:
+    def __call__(self, obs: Any) -> int | np.ndarray:
         # a recurrent network's state follows every observation, whether its action is taken or not
         greedy = int(self.batch(single_to_flat(obs))[0]) if isinstance(self.net, RecurrentQNetwork) else None
+        continuous = getattr(self.net, "continuous", False)
         if self.epsilon > 0 and self.rng.random() < self.epsilon:
+            if continuous:  # a uniform point of [-1, 1]^d
+                return self.rng.uniform(-1.0, 1.0, self.n_actions).astype(np.float32)
             return int(self.rng.integers(self.n_actions))
+        if continuous:
+            return self.batch(single_to_flat(obs))[0]
         return greedy if greedy is not None else int(self.batch(single_to_flat(obs))[0])
 
     def batch(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -150,7 +166,8 @@ def load_policy(path: str | os.PathLike[str], observation_space: gym.Space, acti
     """Checkpoint file -> :class:`GreedyPolicy` for an env with these (single) spaces."""
     state = read_checkpoint(path)
     net = build_network(state, observation_space, action_space)
-    return GreedyPolicy(net, num_actions(action_space), epsilon, seed, name=Path(path).name)
+    return GreedyPolicy(net, int(net.policy.out_features) if isinstance(net, ActorCritic) else num_actions(action_space),
+                        epsilon, seed, name=Path(path).name)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1307,8 +1307,10 @@ class Unroll(Message):
 
     ``obs``: ``{"obs" or "obs/<key>": array[T+1, ...]}``, the observations acted on at steps
     0..T-1, then the one after the last step (the bootstrap observation; where step T-1 ended an
-    episode it is the next episode's first). ``action`` int64[T]; ``behaviour_logp`` float32[T]
-    (log mu(a_t|x_t)); ``reward`` float32[T]; ``terminated``, ``truncated`` bool[T].
+    episode it is the next episode's first). ``action`` int64[T], or float32[T, d] for continuous
+    actions (a d-dimensional ``Box``, normalised to [-1, 1]: the sampled action, before the env
+    clips it); ``behaviour_logp`` float32[T] (log mu(a_t|x_t), a log-density for continuous
+    actions); ``reward`` float32[T]; ``terminated``, ``truncated`` bool[T].
     ``final_obs``: ``{same names: array[K, ...]}``, the true final observations of the K steps
     with ``truncated & ~terminated``, in step order (the learner bootstraps from them; the
     unroll's next row is already the reset observation); nil or 0-row arrays when K = 0.
@@ -1484,7 +1486,7 @@ class Unroll(Message):
             return None
 
         act = shape_of(env.get("action"))
-        if act is None or len(act) != 1:
+        if act is None or len(act) not in (1, 2):  # [T], or [T, d] continuous
             return
         T = act[0]
         if not 1 <= T <= MAX_UNROLL_STEPS:
@@ -1522,9 +1524,16 @@ class Unroll(Message):
             raise ProtocolError("policy_version", f"{self.policy_version} is outside -1..2^63-1", "field")
         if self.seq > MAX_UNROLL_INT:
             raise ProtocolError("seq", f"{self.seq} is outside 0..2^63-1", "field")
-        T = self.action.shape[0] if self.action.ndim == 1 else -1
+        T = self.action.shape[0] if self.action.ndim in (1, 2) else -1
         for k, dt in _UNROLL_STEP_FIELDS.items():
             a = getattr(self, k)
+            if k == "action" and a.ndim == 2:  # continuous: float32[T, d]
+                if a.dtype != np.float32 or not 1 <= a.shape[1] <= MAX_UNROLL_ACTIONS:
+                    raise ProtocolError(k, f"must be int64[T], or float32[T, d] with d in 1..{MAX_UNROLL_ACTIONS} "
+                                           f"(continuous), got {a.dtype.name}{list(a.shape)}", "shape")
+                if not np.isfinite(a).all():
+                    raise ProtocolError(k, "contains NaN or Inf", "nonfinite")
+                continue
             if a.ndim != 1:
                 raise ProtocolError(k, f"must be 1-D [T], got shape {list(a.shape)}", "shape")
             if a.dtype != np.dtype(dt):

@@ -11,12 +11,19 @@ same way).
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping
 
 import numpy as np
 
 from zenrl.common.protocol import DEFAULT_MAX_DECODED_BYTES, DecodeLimits, Unroll
+from zenrl.common.networks import LOG_STD_MIN, is_continuous, policy_actions
 from zenrl.common.specs import ObsRule, Rejection, obs_rules_from_space
+
+#: Largest |action| a continuous unroll may carry (normalised units: the env clips to [-1, 1];
+#: an honest Gaussian policy's samples stay within a few of its standard deviations of a mean
+#: the learner keeps near that range).
+MAX_ABS_ACTION = 1e3
 
 
 class UnrollChecker:
@@ -28,15 +35,25 @@ class UnrollChecker:
     ``[min_logp, logp_tolerance]`` (a probability, with float32 rounding slack);
     ``check_obs_bounds`` False skips the observations' bounds (dtypes and shapes still count).
     With behaviour logits, their log-softmax at the action taken must match ``behaviour_logp``
-    within ``logp_match_tolerance``."""
+    within ``logp_match_tolerance``.
+
+    ``continuous``: actions are float32[T, n_actions] (a Box normalised to [-1, 1]: the Gaussian
+    policy's samples before the env clips them), each within ``max_abs_action``; the behaviour
+    log-densities may then be positive, up to what the narrowest Gaussian the learner allows
+    gives (``n_actions * (-LOG_STD_MIN - log(2 pi) / 2)``), and behaviour logits are refused
+    (there are none to send)."""
 
     def __init__(self, rules: Mapping[str, ObsRule], n_actions: int, max_abs_reward: float,
                  unroll_length: int | None = None, min_logp: float = -1000.0, logp_tolerance: float = 1e-4,
-                 logp_match_tolerance: float = 1e-3, check_obs_bounds: bool = True) -> None:
+                 logp_match_tolerance: float = 1e-3, check_obs_bounds: bool = True, continuous: bool = False,
+                 max_abs_action: float = MAX_ABS_ACTION) -> None:
         if n_actions < 1:
             raise ValueError(f"n_actions must be >= 1, got {n_actions}")
         self.rules = dict(rules)
         self.n_actions = int(n_actions)
+        self.continuous = bool(continuous)
+        self.max_abs_action = float(max_abs_action)
+        self.max_logp = self.n_actions * (-LOG_STD_MIN - 0.5 * math.log(2 * math.pi)) if continuous else 0.0
         self.max_abs_reward = float(max_abs_reward)
         self.unroll_length = unroll_length
         self.min_logp = float(min_logp)
@@ -48,9 +65,8 @@ class UnrollChecker:
     def from_spaces(cls, observation_space: Any, action_space: Any, max_abs_reward: float, **kw: Any) -> "UnrollChecker":
         import gymnasium as gym
 
-        if not isinstance(action_space, gym.spaces.Discrete):
-            raise ValueError(f"zenrl's IMPALA needs a Discrete action space, got {action_space}")
-        return cls(obs_rules_from_space(observation_space), int(action_space.n), max_abs_reward, **kw)
+        n = policy_actions(action_space)  # Discrete, or a 1-D Box with finite bounds; ValueError otherwise
+        return cls(obs_rules_from_space(observation_space), int(n), max_abs_reward, continuous=is_continuous(n), **kw)
 
     def decode_limits(self, max_decoded_bytes: int = DEFAULT_MAX_DECODED_BYTES) -> DecodeLimits:
         """What ``Unroll.decode`` should admit for this env (``limits=``): compressed arrays only
@@ -78,16 +94,19 @@ class UnrollChecker:
                 return Rejection("obs_dtype", f"field {k}: {a.dtype.name}{list(a.shape[1:])}, the env's spec says "
                                               f"{rule.dtype}{list(rule.shape)}")
         a = u.action
-        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
-            bad = int(a.min()) if int(a.min()) < 0 else int(a.max())
-            return Rejection("action_range", f"action {bad} is outside 0..{self.n_actions - 1}")
+        bad_action = self._check_actions(a)
+        if bad_action is not None:
+            return bad_action
         r = u.reward
         if not np.isfinite(r).all() or float(np.abs(r).max()) > self.max_abs_reward:
             return Rejection("reward_bound", f"|reward| {float(np.abs(r).max()):.3g} exceeds {self.max_abs_reward:.3g}")
         lp = u.behaviour_logp
-        if not np.isfinite(lp).all() or float(lp.max()) > self.logp_tolerance or float(lp.min()) < self.min_logp:
+        top = self.max_logp + self.logp_tolerance
+        if not np.isfinite(lp).all() or float(lp.max()) > top or float(lp.min()) < self.min_logp:
             return Rejection("logp_range", f"behaviour log-probabilities span [{float(lp.min()):.3g}, {float(lp.max()):.3g}], "
-                                           f"outside [{self.min_logp:.3g}, 0]")
+                                           f"outside [{self.min_logp:.3g}, {self.max_logp:.3g}]")
+        if u.behaviour_logits is not None and self.continuous:
+            return Rejection("spec", "behaviour logits sent for continuous actions (a Gaussian policy has none)")
         if u.behaviour_logits is not None:
             bad = self._check_logits(u)
             if bad is not None:
@@ -98,6 +117,21 @@ class UnrollChecker:
                     rule = self.rules[k]
                     if rule.low is not None and x.size and ((x < rule.low).any() or (x > rule.high).any()):
                         return Rejection("obs_bounds", f"{group} field {k} has values outside the env's observation bounds")
+        return None
+
+    def _check_actions(self, a: np.ndarray) -> Rejection | None:
+        if self.continuous:
+            if a.ndim != 2 or a.dtype != np.float32 or a.shape[1] != self.n_actions:
+                return Rejection("action_range", f"actions {a.dtype.name}{list(a.shape)}; the env's are float32[T, {self.n_actions}]")
+            if a.size and float(np.abs(a).max()) > self.max_abs_action:
+                return Rejection("action_range", f"|action| {float(np.abs(a).max()):.3g} exceeds {self.max_abs_action:.3g} "
+                                                 "(actions are normalised to [-1, 1])")
+            return None
+        if a.ndim != 1 or a.dtype.kind != "i":
+            return Rejection("action_range", f"actions {a.dtype.name}{list(a.shape)}; the env's are int64[T] indices")
+        if a.size and (int(a.min()) < 0 or int(a.max()) >= self.n_actions):
+            bad = int(a.min()) if int(a.min()) < 0 else int(a.max())
+            return Rejection("action_range", f"action {bad} is outside 0..{self.n_actions - 1}")
         return None
 
     def _check_logits(self, u: Unroll) -> Rejection | None:

@@ -20,7 +20,7 @@ from zenrl.common.errors import CheckpointError, ConfigError
 from zenrl.common.guard_rule import GuardRule
 from zenrl.common.league_reset import GenerationWatch
 from zenrl.common.metrics import MetricsWriter
-from zenrl.common.networks import num_actions, obs_spec, resolve_device
+from zenrl.common.networks import action_size, obs_spec, resolve_device
 from zenrl.common.roles import Cadence, RoleLoop
 from zenrl.learner.checkpoint import (VersionReservation, checkpoint_dir, list_checkpoints, load_latest,
                                      remove_stale_temp_files, save_checkpoint)
@@ -29,18 +29,18 @@ log = logging.getLogger(__name__)
 
 
 def env_facts(cfg: RunConfig) -> tuple[dict, int, GuardRule | None]:
-    """``cfg.env``'s observation spec, number of actions and, with ``learner.guard_imitation``,
+    """``cfg.env``'s observation spec, policy head size (:func:`~zenrl.common.networks.action_size`) and, with ``learner.guard_imitation``,
     its guard rule (else None), from one env made and closed here. ConfigError naming what is
     missing where the env has no guard rule (not a match env)."""
     env = make_env(cfg.env)
     try:
-        spec, n = obs_spec(env.observation_space), num_actions(env.action_space)
+        spec, n = obs_spec(env.observation_space), action_size(env.action_space, cfg.algo)
         if not cfg.learner.guard_imitation:
             return spec, n, None
         rule = getattr(env.unwrapped, "guard_rule", None)
         if rule is None:
             raise ConfigError(f"learner.guard_imitation needs a match env (zenrl/BurgerWar-v0), not {cfg.env.id}")
-        return spec, n, rule()  # a discrete action set: num_actions refuses the continuous one
+        return spec, n, rule()  # a match env: a discrete action set
     finally:
         env.close()
 

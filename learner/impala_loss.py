@@ -27,6 +27,8 @@ from torch.nn import functional as F
 from zenrl.learner.unroll_queue import UnrollBatch
 from zenrl.learner.vtrace import vtrace
 
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
 #: log(pi/mu) is capped here before exp: a ratio of e^20 is already absurd, and the cap keeps
 #: the statistics finite when a behaviour log-probability is extreme.
 MAX_LOG_RHO = 20.0
@@ -46,18 +48,38 @@ class LossParams:
     normalize_advantages: bool = False
 
 
+def policy_logp_entropy(logits: torch.Tensor, action: torch.Tensor,
+                        log_std: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """log pi(a|x) and the policy's entropy H(pi(.|x)), both float[T, B].
+
+    Categorical (``log_std`` None): ``logits`` float[T, B, A], ``action`` int64[T, B].
+    Gaussian (continuous actions): ``logits`` the means float[T, B, d], ``action`` float[T, B, d],
+    ``log_std`` float[d] (clamped); independent normals, so both are sums over the d dimensions:
+    ``log pi = sum(-(a - mu)^2 / (2 sigma^2) - log sigma - log(2 pi) / 2)``,
+    ``H = sum(log sigma + (1 + log(2 pi)) / 2)``."""
+    if log_std is None:
+        logp_all = F.log_softmax(logits, dim=-1)
+        logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+        return logp, -(logp_all.exp() * logp_all).sum(-1)
+    z = (action.to(logits.dtype) - logits) * torch.exp(-log_std)
+    logp = (-0.5 * z * z - log_std - HALF_LOG_2PI).sum(-1)
+    entropy = (log_std + 0.5 + HALF_LOG_2PI).sum().expand_as(logp)
+    return logp, entropy
+
+
 def impala_loss(logits: torch.Tensor, values: torch.Tensor, bootstrap_value: torch.Tensor,
                 truncated_values: torch.Tensor | None, action: torch.Tensor, behaviour_logp: torch.Tensor,
                 reward: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor,
-                p: LossParams) -> tuple[torch.Tensor, dict[str, float]]:
+                p: LossParams, log_std: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """logits float[T, B, A] and values float[T, B] (with grad); bootstrap_value float[B] and
     truncated_values float[T, B] or None (V of the observation after the last step and of the
     truncated steps' final observations: detached, they only feed the targets); action
     int64[T, B]; behaviour_logp, reward float[T, B]; terminated, truncated bool[T, B].
+    Continuous actions: ``log_std`` float[d] (with grad), ``logits`` the means float[T, B, d],
+    ``action`` float[T, B, d] (:func:`policy_logp_entropy`).
     Returns (loss scalar, stats: loss, policy_loss, value_loss, entropy, rho_mean, rho_max,
     clip_fraction (APPO: |ratio - 1| > eps; IMPALA: rho > rho_bar), advantage_mean, vs_mean)."""
-    logp_all = F.log_softmax(logits, dim=-1)
-    logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+    logp, entropies = policy_logp_entropy(logits, action, log_std)
     log_rhos = (logp.detach() - behaviour_logp).clamp(max=MAX_LOG_RHO)
     vt = vtrace(log_rhos, reward, values.detach(), bootstrap_value.detach(), terminated, truncated,
                 None if truncated_values is None else truncated_values.detach(),
@@ -75,7 +97,7 @@ def impala_loss(logits: torch.Tensor, values: torch.Tensor, bootstrap_value: tor
         policy_loss = -surrogate.mean()
         clipped = ((ratio.detach() - 1.0).abs() > p.clip_eps).float().mean()
     value_loss = F.mse_loss(values, vt.vs)
-    entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+    entropy = entropies.mean()
     loss = policy_loss + p.value_coef * value_loss - p.entropy_coef * entropy
     stats = {"loss": loss, "policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
              "rho_mean": vt.rhos.mean(), "rho_max": vt.rhos.max(), "clip_fraction": clipped,
@@ -112,8 +134,9 @@ def learner_step(net: torch.nn.Module, optimizer: torch.optim.Optimizer, batch: 
     grad_norm)`` (the learner's guard) is asked before the step: False skips it (the gradients
     are cleared, the optimizer never sees them) and None is returned."""
     logits, values, boot, final_values = forward_unrolls(net, batch)
+    log_std = net.clamped_log_std() if getattr(net, "continuous", False) else None
     loss, stats = impala_loss(logits, values, boot, final_values, batch.action, batch.behaviour_logp, batch.reward,
-                              batch.terminated, batch.truncated, p)
+                              batch.terminated, batch.truncated, p, log_std)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     params = [q for q in net.parameters() if q.grad is not None]

@@ -157,7 +157,7 @@ class UnrollQueue:
 @dataclass(frozen=True)
 class UnrollBatch:
     """B unrolls of T steps, time-major tensors. ``obs``: ``{name: [T+1, B, ...]}``;
-    ``action`` int64[T, B]; ``behaviour_logp``, ``reward`` float32[T, B]; ``terminated``,
+    ``action`` int64[T, B] (float32[T, B, d]: continuous); ``behaviour_logp``, ``reward`` float32[T, B]; ``terminated``,
     ``truncated`` bool[T, B]; ``final_obs``: ``{name: [K, ...]}``, the final observations of
     the K truncated (not terminated) steps, unroll by unroll; ``final_index`` int64[K]: their
     positions ``t * B + b`` in the flattened [T, B]; ``behaviour_logits`` float32[T, B, A] or
@@ -176,7 +176,7 @@ class UnrollBatch:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return tuple(self.action.shape)  # type: ignore[return-value]
+        return tuple(self.action.shape[:2])  # type: ignore[return-value]
 
 
 def batch_unrolls(unrolls: list[Unroll], device: torch.device | str = "cpu") -> UnrollBatch:

@@ -4,7 +4,9 @@ role with the learner training; with an update budget, the greedy eval return mu
 above a random policy's (~22 on CartPole-v1), the learner must have rejected nothing and trained
 on T * B env steps per update, its checkpoint must hold finite params that `zenrl evaluate`
 plays, and nothing may be left running. A second test: an actor publishing bad unrolls beside
-the honest ones is rejected by reason and quarantined while the learner keeps training."""
+the honest ones is rejected by reason and quarantined while the learner keeps training. Then
+APPO on continuous actions (Pendulum-v1): the run, its checkpoint under `zenrl evaluate`, and
+(slow) solving it."""
 
 import json
 import subprocess
@@ -31,8 +33,8 @@ def _zenrl(*args, timeout_s=120):
                           timeout=timeout_s)
 
 
-def _launch(tmp_path, run_id, *sets):
-    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", CONFIG, "--run-id", run_id, "--no-progress",
+def _launch(tmp_path, run_id, *sets, config=CONFIG):
+    cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", config, "--run-id", run_id, "--no-progress",
            "--set", f"runs_dir={tmp_path}", "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]"]
     for s in sets:
         cmd += ["--set", s]
@@ -100,6 +102,62 @@ def test_zenrl_run_impala_learns_cartpole(tmp_path):
     res = json.loads((tmp_path / "eval.json").read_text())
     assert res["env"] == "CartPole-v1" and len(res["results"]) == 3
     assert all(np.isfinite(r["ret"]) and r["ret"] >= 1 for r in res["results"])
+
+
+PENDULUM = "configs/pendulum_appo.yaml"
+#: Pendulum-v1's return per 200-step episode lies in [-16.27 * 200, 0]
+PENDULUM_WORST = -16.3 * 200
+
+
+def _pendulum_run(tmp_path, run_id, *sets, timeout_s=600):
+    launcher = _launch(tmp_path, run_id, *sets, config=PENDULUM)
+    out = _finish(launcher, timeout_s)
+    assert launcher.returncode == 0, out[-3000:]
+    run_dir = tmp_path / run_id
+    return run_dir, json.loads((run_dir / "summary.json").read_text())
+
+
+def test_zenrl_run_appo_takes_continuous_actions(tmp_path):
+    """Pendulum-v1 (a Box action space) under the shipped APPO config, with an update budget: the
+    actors' float actions and log-densities reach the learner and none is rejected, every update
+    trains on T * B env steps, the evaluator's greedy (mean) returns are Pendulum returns; the
+    checkpoint plays under `zenrl evaluate` with either policy, and `zenrl export` refuses it in
+    one line (an exported policy returns an action index)."""
+    run_id = f"e2e-appo-box-{uuid.uuid4().hex[:8]}"
+    run_dir, summary = _pendulum_run(tmp_path, run_id, "max_updates=600", "target_return=null", "evaluator.interval_s=1")
+    logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
+    assert summary["stop_reason"].startswith("max_updates"), summary["stop_reason"]
+    learner = summary["learner"]
+    assert learner["updates"] >= 600 and learner["rejected_total"] == 0 and learner["skipped_updates"] == 0, learner
+    assert learner["env_steps_trained"] == learner["updates"] * 32 * 8
+    assert all(v == 0 for v in summary["restarts"].values()), summary["restarts"]
+    evals = [e["mean"] for e in summary["evals"]]
+    assert evals and all(PENDULUM_WORST <= m <= 0 for m in evals), (evals, logs.get("evaluator.log"))
+    state = read_checkpoint(sorted((run_dir / "checkpoints").glob("ckpt-*.pt"))[-1])
+    assert state.policy_state()["log_std"].shape == (1,)
+    assert all(torch.isfinite(t).all() for t in state.policy_state().values())
+    assert not zenrl_pids(run_id), zenrl_pids(run_id)
+    for policy in ("greedy", "sample"):
+        ev = _zenrl("evaluate", "--checkpoint", str(run_dir), "--episodes", "2", "--workers", "1", "--no-progress",
+                    "--policy", policy, "--json", str(tmp_path / f"{policy}.json"), timeout_s=300)
+        assert ev.returncode == 0, ev.stderr[-3000:]
+        res = json.loads((tmp_path / f"{policy}.json").read_text())
+        assert res["env"] == "Pendulum-v1" and len(res["results"]) == 2
+        assert all(PENDULUM_WORST <= r["ret"] <= 0 and r["length"] == 200 for r in res["results"]), res["results"]
+    ex = _zenrl("export", "--checkpoint", str(run_dir), "--out", str(tmp_path / "p.pt"), timeout_s=120)
+    errors = [x for x in ex.stderr.splitlines() if x.startswith("zenrl: error:")]
+    assert ex.returncode != 0 and len(errors) == 1 and "continuous-action policy cannot be exported" in errors[0], ex.stderr
+    assert "Traceback" not in ex.stderr and not (tmp_path / "p.pt").exists()
+
+
+@pytest.mark.slow
+def test_zenrl_run_appo_solves_pendulum(tmp_path):
+    """The shipped APPO config solves Pendulum-v1 (greedy eval >= -200 over 10 episodes; a random
+    policy gets about -1200) well within its wall-clock budget."""
+    run_id = f"e2e-appo-solve-{uuid.uuid4().hex[:8]}"
+    run_dir, summary = _pendulum_run(tmp_path, run_id, "max_wall_s=480", timeout_s=600)
+    assert summary["stop_reason"].startswith("solved"), (summary["stop_reason"], [e["mean"] for e in summary["evals"]])
+    assert summary["learner"]["rejected_total"] == 0
 
 
 def _bad_unroll(actor, seq, T, version):

@@ -11,7 +11,7 @@ import torch
 from tests.unit.test_vtrace import ref_eq1
 from zenrl.common import protocol as P
 from zenrl.common.config import NetworkConfig
-from zenrl.common.networks import ActorCritic
+from zenrl.common.networks import LOG_STD_MIN, ActorCritic, BoxActions
 from zenrl.common.specs import ArraySpec
 from zenrl.learner.impala_loss import LossParams, forward_unrolls, impala_loss, learner_step
 from zenrl.learner.unroll_queue import batch_unrolls
@@ -170,3 +170,141 @@ def test_impala_clip_fraction_counts_rhos_over_rho_bar():
                            torch.zeros(T_, B_, dtype=torch.int64), behaviour, torch.ones(T_, B_), z, z, LossParams())
     assert stats["clip_fraction"] == pytest.approx(0.25) and stats["rho_max"] == pytest.approx(2.0)
     assert stats["rho_mean"] == pytest.approx((2 + 1 + 2 / 3 + 1) / 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Continuous actions: a Gaussian policy (mean tanh(policy head), state-independent log std)
+# --------------------------------------------------------------------------------------------
+DA = 2  # action dimensions
+HALF_LOG_2PI = 0.5 * np.log(2 * np.pi)
+
+
+def _gauss_net(log_std_init=-0.3):
+    torch.manual_seed(0)
+    cfg = NetworkConfig(hidden=[H], activation="tanh", orthogonal_init=False, shared_torso=True, dueling=False,
+                        log_std_init=log_std_init)
+    return ActorCritic({"obs": ArraySpec((D,), "float32")}, BoxActions(DA), cfg)
+
+
+def _np_gauss_logp(mean, log_std, a):
+    """Sum over dimensions of the normal log-density, element by element with math's functions."""
+    out = np.zeros(mean.shape[0])
+    for i in range(mean.shape[0]):
+        for j in range(mean.shape[1]):
+            sd = np.exp(log_std[j])
+            out[i] += -0.5 * ((a[i, j] - mean[i, j]) / sd) ** 2 - np.log(sd) - 0.5 * np.log(2 * np.pi)
+    return out
+
+
+def _gauss_unrolls(net):
+    """As :func:`_unrolls`, with float32[T, DA] actions drawn around the net's own means (some
+    outside [-1, 1], as an honest actor's samples are) and behaviour log-densities = the net's
+    own plus noise."""
+    rng = np.random.default_rng(2)
+    w = _params(net)
+    out = []
+    for b in range(B):
+        obs = rng.normal(size=(T + 1, D)).astype(np.float32)
+        _, u, _ = _np_forward(w, obs[:T].astype(np.float64))
+        mean = np.tanh(u)
+        act = (mean + np.exp(w["log_std"]) * rng.normal(size=(T, DA)) * 1.5).astype(np.float32)
+        logp = _np_gauss_logp(mean, w["log_std"], act.astype(np.float64)) + rng.normal(scale=0.4, size=T)
+        term, trunc = np.zeros(T, bool), np.zeros(T, bool)
+        if b == 1:
+            trunc[1], term[3] = True, True
+        if b == 2:
+            trunc[0] = trunc[2] = True
+        K = int((trunc & ~term).sum())
+        final = {"obs": rng.normal(size=(K, D)).astype(np.float32)} if K else None
+        out.append(P.Unroll(f"a{b}", 3, b, {"obs": obs}, act, logp.astype(np.float32),
+                            rng.normal(size=T).astype(np.float32), term, trunc, final))
+    return out
+
+
+def _np_gauss_step(w, us, p: LossParams):
+    """Loss statistics and d loss / d parameter of the Gaussian policy, by hand:
+    d logp / d mean = (a - mean) / sd^2, d logp / d log_std = z^2 - 1, dH / d log_std = 1 per
+    dimension, d mean / d u = 1 - mean^2."""
+    N = T * B
+    x = np.stack([u.obs["obs"] for u in us], axis=1).astype(np.float64)
+    h_all, u_all, v_all = _np_forward(w, x.reshape((T + 1) * B, D))
+    h, mean, v = h_all[:N], np.tanh(u_all[:N]), v_all[:N].reshape(T, B)
+    boot = v_all[N:].copy()
+    act = np.stack([u.action for u in us], axis=1).reshape(N, DA).astype(np.float64)
+    mu_logp = np.stack([u.behaviour_logp for u in us], axis=1).astype(np.float64)
+    r = np.stack([u.reward for u in us], axis=1).astype(np.float64)
+    term = np.stack([u.terminated for u in us], axis=1)
+    trunc = np.stack([u.truncated for u in us], axis=1)
+    final_v = np.zeros((T, B))
+    for b, u in enumerate(us):
+        if u.final_obs is not None:
+            final_v[np.flatnonzero(u.cut), b] = _np_forward(w, u.final_obs["obs"].astype(np.float64))[2]
+    ls = w["log_std"]
+    logp = _np_gauss_logp(mean, ls, act)
+    log_rhos = logp.reshape(T, B) - mu_logp
+    vs, pg_adv = ref_eq1(log_rhos, r, v, boot, term, trunc, final_v, p.gamma, p.lam, p.rho_bar, p.c_bar)
+    if p.clip_eps is None:
+        adv = pg_adv.reshape(N)
+        policy_loss = -np.mean(adv * logp)
+        g = -adv / N  # d loss / d logp_i
+    else:
+        q = np.zeros((T, B))
+        for b in range(B):
+            for s in range(T):
+                nxt = 0.0 if term[s, b] else final_v[s, b] if trunc[s, b] else vs[s + 1, b] if s + 1 < T else boot[b]
+                q[s, b] = r[s, b] + p.gamma * nxt
+        adv = (q - v).reshape(N)
+        if p.normalize_advantages:
+            adv = (adv - adv.mean()) / (adv.std(ddof=1) + 1e-8)
+        ratio = np.exp(log_rhos.reshape(N))
+        clipped = np.clip(ratio, 1 - p.clip_eps, 1 + p.clip_eps)
+        policy_loss = -np.mean(np.minimum(ratio * adv, clipped * adv))
+        active = (ratio * adv <= clipped * adv) | (np.abs(ratio - 1) <= p.clip_eps)
+        g = -(active * adv * ratio) / N
+    zsc = (act - mean) / np.exp(ls)  # [N, DA]
+    dmean = g[:, None] * zsc / np.exp(ls)
+    du = dmean * (1 - mean ** 2)
+    dls = (g[:, None] * (zsc ** 2 - 1)).sum(0) - p.entropy_coef * np.ones(DA)
+    entropy = (ls + 0.5 + HALF_LOG_2PI).sum()
+    dv = -2.0 * p.value_coef * (vs.reshape(N) - v.reshape(N)) / N
+    dh = du @ w["policy.weight"] + dv[:, None] @ w["value.weight"]
+    dpre = dh * (1 - h ** 2)
+    x_rows = x.reshape((T + 1) * B, D)[:N]
+    grads = {"policy.weight": du.T @ h, "policy.bias": du.sum(0), "log_std": dls,
+             "value.weight": dv[None, :] @ h, "value.bias": np.array([dv.sum()]),
+             "trunk.0.weight": dpre.T @ x_rows, "trunk.0.bias": dpre.sum(0)}
+    stats = {"policy_loss": policy_loss, "value_loss": np.mean((vs.reshape(N) - v.reshape(N)) ** 2),
+             "entropy": entropy, "rho_mean": np.exp(log_rhos).mean()}
+    return grads, stats
+
+
+@pytest.mark.parametrize("p", [LossParams(gamma=0.9, entropy_coef=0.05), LossParams(gamma=0.9, clip_eps=0.2),
+                               LossParams(gamma=0.9, clip_eps=0.1, normalize_advantages=True, entropy_coef=0.01)],
+                         ids=["impala", "appo", "appo-normalized"])
+def test_one_learner_step_with_continuous_actions_matches_numpy(p):
+    net = _gauss_net()
+    assert net.continuous
+    us = _gauss_unrolls(net)
+    w = _params(net)
+    grads, ref = _np_gauss_step(w, us, p)
+    opt = torch.optim.SGD(net.parameters(), lr=LR)
+    stats = learner_step(net, opt, batch_unrolls(us), p)
+    after = _params(net)
+    assert set(after) == set(grads)
+    for k in grads:
+        np.testing.assert_allclose((w[k] - after[k]) / LR, grads[k].reshape(w[k].shape), rtol=2e-3, atol=2e-6, err_msg=k)
+    for k, v in ref.items():
+        assert stats[k] == pytest.approx(v, rel=1e-4, abs=1e-6), k
+
+
+def test_gaussian_log_std_is_clamped_where_used():
+    """A log std below LOG_STD_MIN acts as LOG_STD_MIN (the entropy says so) and gets no gradient
+    from the loss there."""
+    net = _gauss_net(log_std_init=-5.0)
+    with torch.no_grad():
+        net.log_std.fill_(-9.0)
+    assert torch.equal(net.clamped_log_std(), torch.full((DA,), LOG_STD_MIN))
+    us = _gauss_unrolls(_gauss_net())
+    stats = learner_step(net, torch.optim.SGD(net.parameters(), lr=LR), batch_unrolls(us), LossParams(entropy_coef=0.1))
+    assert stats["entropy"] == pytest.approx(DA * (LOG_STD_MIN + 0.5 + HALF_LOG_2PI), rel=1e-6)
+    assert torch.equal(net.log_std.detach(), torch.full((DA,), -9.0))

@@ -3,6 +3,7 @@ observations, lz4, truncations with final observations, behaviour logits) and ev
 field refused at decode with its reason tag, including well-formed lies (T mismatches, huge
 declared shapes, out-of-range integers) refused before anything is decompressed."""
 
+import dataclasses
 import lz4.block
 import msgpack
 import numpy as np
@@ -142,6 +143,14 @@ MALFORMED = {
     "action int32": (_set(["action"], _arr(np.zeros(T, np.int32))), "dtype"),
     "action 2-D": (_set(["action"], _arr(np.zeros((T, 1), np.int64))), "shape"),
     "empty unroll": (lambda e: e.update(action=_arr(np.zeros(0, np.int64))), "batch"),
+    # continuous actions: float32[T, d] only
+    "continuous actions float64": (_set(["action"], _arr(np.zeros((T, 2), np.float64))), "shape"),
+    "continuous actions of no dimension": (_set(["action"], _arr(np.zeros((T, 0), np.float32))), "shape"),
+    "continuous actions NaN": (_set(["action"], _arr(np.full((T, 2), np.nan, np.float32))), "nonfinite"),
+    "continuous actions Inf": (_set(["action"], _arr(np.full((T, 1), -np.inf, np.float32))), "nonfinite"),
+    "continuous actions 3-D": (_set(["action"], _arr(np.zeros((T, 2, 2), np.float32))), "shape"),
+    "continuous actions one step short": (_set(["action"], _arr(np.zeros((T - 1, 2), np.float32))), "batch"),
+    "float actions 1-D": (_set(["action"], _arr(np.zeros(T, np.float32))), "dtype"),
     "reward one step short": (_set(["reward"], _arr(np.ones(T - 1, np.float32))), "batch"),
     "logp one step long": (_set(["behaviour_logp"], _arr(np.zeros(T + 1, np.float32))), "batch"),
     "logp float64": (_set(["behaviour_logp"], _arr(np.zeros(T, np.float64))), "dtype"),
@@ -183,6 +192,23 @@ def test_malformed_is_refused_with_reason(case):
     with pytest.raises(P.ProtocolError) as e:
         P.Unroll.decode(msgpack.packb(env, use_bin_type=True))
     assert e.value.reason == reason, str(e.value)
+
+
+def test_continuous_actions_round_trip():
+    """float32[T, d] actions (a Box normalised to [-1, 1], samples outside it included) decode
+    as sent, and T is read from their first axis."""
+    u = _truncated_unroll()
+    act = np.linspace(-3, 3, T * 2, dtype=np.float32).reshape(T, 2)
+    d = P.Unroll.decode(dataclasses.replace(u, action=act).encode())
+    assert d.steps == T and d.action.dtype == np.float32 and np.array_equal(d.action, act)
+
+
+def test_continuous_actions_declaring_too_many_steps_are_refused_unread():
+    env = _env()
+    env["action"] = {"dtype": "float32", "shape": [P.MAX_UNROLL_STEPS + 1, 2], "data": b""}
+    with pytest.raises(P.ProtocolError) as e:
+        P.Unroll.decode(msgpack.packb(env, use_bin_type=True))
+    assert e.value.reason == "size"
 
 
 def test_empty_unroll_refused_by_constructor_path_too():

@@ -107,6 +107,9 @@ def test_dict_space_with_image_and_discrete():
     assert chk.check(P.Unroll("a0", 0, 0, wrong, u.action, u.behaviour_logp, u.reward, u.terminated, u.truncated)).reason == "obs_dtype"
 
 
-def test_needs_discrete_actions():
+def test_needs_discrete_or_bounded_box_actions():
+    assert UnrollChecker.from_spaces(BOX, gym.spaces.Box(-1, 1, (2,)), max_abs_reward=1.0).continuous
+    with pytest.raises(ValueError, match="finite bounds"):
+        UnrollChecker.from_spaces(BOX, gym.spaces.Box(-np.inf, 1, (2,)), max_abs_reward=1.0)
     with pytest.raises(ValueError, match="Discrete"):
-        UnrollChecker.from_spaces(BOX, gym.spaces.Box(-1, 1, (2,)), max_abs_reward=1.0)
+        UnrollChecker.from_spaces(BOX, gym.spaces.MultiDiscrete([2, 2]), max_abs_reward=1.0)

@@ -75,7 +75,7 @@ def check_env(cfg: RunConfig) -> None:
     ``env.id`` / ``env.kwargs`` or an env zenrl cannot learn (continuous actions) is then one
     :class:`ConfigError` line instead of every child failing in its log."""
     from zenrl.common.env_factory import make_env
-    from zenrl.common.networks import num_actions, obs_spec
+    from zenrl.common.networks import action_size, obs_spec
     from zenrl.common.opponents import check_opponents
     from zenrl.tools.loading import quiet_native_imports
 
@@ -89,7 +89,7 @@ def check_env(cfg: RunConfig) -> None:
         raise ConfigError(f"{where} with env.kwargs={cfg.env.kwargs!r} cannot be made: "
                           f"{type(e).__name__}: {_first_line(str(e))}") from None
     try:
-        num_actions(env.action_space)
+        action_size(env.action_space, cfg.algo)
         obs_spec(env.observation_space)
         env.reset(seed=cfg.seed)
     except Exception as e:  # as above: the env's code, not ours

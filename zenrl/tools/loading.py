@@ -16,7 +16,7 @@ from zenrl import strict_json
 from zenrl.common.config import EnvConfig, RunConfig, config_from_dict
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import ZenrlError
-from zenrl.common.networks import num_actions
+from zenrl.common.networks import action_size
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
 from zenrl.common.policy_io import ExportedPlayer, GreedyPolicy, build_network, is_exported, load_policy  # noqa: F401  (re-exported)
 
@@ -126,7 +126,7 @@ def load_policy_env(checkpoint: str | os.PathLike[str], env_id: str | None = Non
         return exported, env, cfg
     try:
         net = build_network(state, env.observation_space, env.action_space)
-        policy = GreedyPolicy(net, num_actions(env.action_space), name=Path(checkpoint).name, sample=sample)
+        policy = GreedyPolicy(net, action_size(env.action_space, state.algo), name=Path(checkpoint).name, sample=sample)
     except (ValueError, ZenrlError) as e:
         env.close()
         raise ZenrlError(f"{checkpoint}: {e}") from None

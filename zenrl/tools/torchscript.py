@@ -209,6 +209,9 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
                                  f"{cfg.env.id} {env.observation_space}: a mixture plays one env")
             nets.append(other.net)
         for p, net in zip(paths, nets):
+            if getattr(net, "continuous", False):
+                raise ZenrlError(f"{p}: a continuous-action policy cannot be exported yet (the exported call "
+                                 "returns one action index); evaluate and play it from the checkpoint")
             if isinstance(net, RecurrentQNetwork):
                 raise ZenrlError(f"{p}: a recurrent ({cfg.algo}) policy cannot be exported yet: the exported "
                                  "call takes one observation and would have to carry the LSTM state between calls")
