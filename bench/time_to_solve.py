@@ -32,8 +32,10 @@ Reported (the last stdout line is one JSON object; progress goes to stderr):
     python bench/time_to_solve.py --algo apex --quick    # 1 seed each, capped time
     python bench/time_to_solve.py --algo impala          # IMPALA vs A3C vs SB3 A2C, + consumption
     python bench/time_to_solve.py --algo r2d2            # R2D2 vs Ape-X on StatelessCartPole, 600 s cap
+    python bench/time_to_solve.py --algo pendulum        # APPO vs SB3 PPO on Pendulum-v1 (continuous)
 
-``--algo r2d2`` (issue #34): see :func:`r2d2_main`.
+``--algo r2d2`` (issue #34): see :func:`r2d2_main`. ``--algo pendulum`` (continuous actions):
+zenrl APPO vs SB3 PPO on Pendulum-v1, :func:`pendulum_main`.
 """
 
 from __future__ import annotations
@@ -85,13 +87,14 @@ def finite(x: float) -> float | None:
 
 # --------------------------------------------------------------------------------------------
 def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str] | None = None,
-              report_s: float = 0.05, config: Path | None = None) -> dict[str, Any]:
-    """``config``: instead of ``configs/cartpole_<algo>.yaml``."""
+              report_s: float = 0.05, config: Path | None = None, target: float = TARGET) -> dict[str, Any]:
+    """``config``: instead of ``configs/cartpole_<algo>.yaml``; ``target``: the greedy eval return
+    that solves it."""
     run_id = f"tts-{algo}-s{seed}-{os.getpid()}"
     config = config or ROOT / "configs" / f"cartpole_{algo}.yaml"
     cmd = [sys.executable, "-m", "zenrl.cli", "run", "--config", str(config),
            "--seed", str(seed), "--run-id", run_id, "--no-progress", "--set", f"runs_dir={runs_dir}",
-           "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={TARGET}",
+           "--set", f"transport.listen=[tcp/127.0.0.1:{free_port()}]", "--set", f"target_return={target}",
            "--set", f"max_wall_s={cap_s}", "--set", f"actor.episode_report_s={report_s}"]
     for kv in sets or []:
         cmd += ["--set", kv]
@@ -222,6 +225,119 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
     return out
 
 
+# -- continuous actions: APPO on Pendulum-v1 vs SB3 PPO -------------------------------------
+PENDULUM_CONFIG = ROOT / "configs" / "pendulum_appo.yaml"
+PENDULUM_TARGET = -200.0
+# rl-baselines3-zoo, hyperparams/ppo.yml, Pendulum-v1 (values, not code); ``normalize``:
+# VecNormalize of observations and rewards, as the zoo trains it.
+ZOO_PPO_PENDULUM = {"n_timesteps": 100_000, "policy": "MlpPolicy", "normalize": True, "n_envs": 4, "n_steps": 1024,
+                    "gae_lambda": 0.95, "gamma": 0.9, "n_epochs": 10, "ent_coef": 0.0, "learning_rate": 1e-3,
+                    "clip_range": 0.2, "use_sde": True, "sde_sample_freq": 4}
+
+
+def run_sb3_ppo_pendulum(seed: int, cap_s: float, eval_every: int, threads: int) -> dict[str, Any]:
+    """SB3 PPO with the zoo's Pendulum-v1 hyper-parameters (up to 4x its 100 k steps, or
+    ``cap_s``); the clock starts at the first env step and pauses while 10 greedy episodes
+    (observations normalised with the training statistics) are played every ``eval_every`` env
+    steps, on zenrl's evaluation seeds."""
+    import gymnasium as gym
+    import numpy as np
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    torch.set_num_threads(threads)
+    hp = ZOO_PPO_PENDULUM
+
+    class SolveClock(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.t_start: float | None = None
+            self.paused = 0.0
+            self.next_eval = eval_every
+            self.rounds = 0
+            self.solve_s: float | None = None
+            self.evals: list[tuple[int, float, float]] = []
+            self.eval_env = gym.make("Pendulum-v1")
+
+        def clock(self) -> float:
+            return 0.0 if self.t_start is None else time.perf_counter() - self.t_start - self.paused
+
+        def _evaluate(self) -> float:
+            norm = self.model.get_env()
+            rets = []
+            for i in range(EVAL_EPISODES):
+                obs, _ = self.eval_env.reset(seed=seed + EVAL_SEED_OFFSET + EVAL_EPISODES * self.rounds + i)
+                done, ret = False, 0.0
+                while not done:
+                    a, _ = self.model.predict(norm.normalize_obs(obs), deterministic=True)
+                    obs, r, term, trunc, _ = self.eval_env.step(a)
+                    ret += float(r)
+                    done = term or trunc
+                rets.append(ret)
+            self.rounds += 1
+            return float(np.mean(rets))
+
+        def _on_step(self) -> bool:
+            if self.t_start is None:
+                self.t_start = time.perf_counter()
+            if self.num_timesteps >= self.next_eval:
+                self.next_eval += eval_every
+                t0 = time.perf_counter()
+                m = self._evaluate()
+                self.paused += time.perf_counter() - t0
+                self.evals.append((self.num_timesteps, round(self.clock(), 2), m))
+                if m >= PENDULUM_TARGET:
+                    self.solve_s = self.clock()
+                    return False
+            return self.clock() < cap_s
+
+    env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=hp["n_envs"], seed=seed), gamma=hp["gamma"])
+    kw = {k: v for k, v in hp.items() if k not in ("n_timesteps", "policy", "normalize", "n_envs")}
+    model = PPO(hp["policy"], env, seed=seed, device="cpu", verbose=0, **kw)
+    cb = SolveClock()
+    model.learn(total_timesteps=4 * hp["n_timesteps"], callback=cb)
+    clock = cb.clock()
+    out = {"seed": seed, "solved": cb.solve_s is not None, "solve_s": cb.solve_s, "env_steps": int(model.num_timesteps),
+           "env_steps_per_s": model.num_timesteps / clock if clock > 0 else None, "train_s": clock,
+           "eval_rounds": cb.rounds, "last_eval": cb.evals[-1][2] if cb.evals else None,
+           "env_steps_at_solve": cb.evals[-1][0] if cb.solve_s is not None else None}
+    log(f"sb3 PPO Pendulum seed {seed}: {json.dumps(out)}")
+    return out
+
+
+def pendulum_main(args: argparse.Namespace) -> None:
+    """zenrl APPO (``configs/pendulum_appo.yaml``) vs SB3 PPO (the zoo's Pendulum-v1 setting),
+    seeds interleaved, time to a greedy eval mean >= -200 over 10 episodes; ratio = median zenrl
+    solve time (from its first env step) / median SB3 solve time (evaluation excluded)."""
+    load_start = os.getloadavg()
+    seeds = 1 if args.quick else args.seeds
+    cap = min(args.cap_s, 240.0) if args.quick else args.cap_s
+    eval_every = args.sb3_eval_every or 4096  # one rollout of the zoo's 4 x 1024 steps
+    zen, sb3 = [], []
+    with tempfile.TemporaryDirectory(prefix="zenrl-tts-") as tmp:
+        for s in range(seeds):
+            zen.append(run_zenrl("impala", s, cap, Path(tmp), args.set, args.report_s, config=PENDULUM_CONFIG,
+                                 target=PENDULUM_TARGET))
+            if not args.skip_sb3:
+                sb3.append(run_sb3_ppo_pendulum(s, cap, eval_every, args.sb3_threads))
+    z_med = median_or_inf([r["solve_s"] for r in zen])
+    s_med = median_or_inf([r["solve_s"] for r in sb3]) if sb3 else float("inf")
+    ratio = z_med / s_med if z_med != float("inf") and s_med not in (0.0, float("inf")) else None
+    print(json.dumps({
+        "bench": "time_to_solve", "env": "Pendulum-v1", "algo": "pendulum", "target_return": PENDULUM_TARGET,
+        "eval_episodes": EVAL_EPISODES, "seeds": seeds, "quick": args.quick, "cap_s": cap,
+        "load_average": {"start": load_start, "end": os.getloadavg()},
+        "zenrl": {"config": "configs/pendulum_appo.yaml", "overrides": args.set, "median_solve_s": finite(z_med), "runs": zen},
+        "sb3": {"algo": "PPO", "zoo_hyperparameters": ZOO_PPO_PENDULUM, "eval_every_steps": eval_every,
+                "torch_threads": args.sb3_threads, "median_solve_s": finite(s_med), "runs": sb3} if sb3 else None,
+        "median_ratio_vs_sb3_ppo": None if ratio is None else round(ratio, 3),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+    }, default=float))
+
+
 # -- R2D2 on StatelessCartPole (issue #34) ----------------------------------------------------
 R2D2_CONFIG = ROOT / "configs" / "stateless_cartpole_r2d2.yaml"
 STATELESS = "zenrl/StatelessCartPole-v1"
@@ -271,7 +387,8 @@ def r2d2_main(args: argparse.Namespace) -> None:
 # --------------------------------------------------------------------------------------------
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--algo", choices=["apex", "a3c", "impala", "r2d2"], default="apex")
+    ap.add_argument("--algo", choices=["apex", "a3c", "impala", "r2d2", "pendulum"], default="apex",
+                    help="pendulum: zenrl APPO vs SB3 PPO on Pendulum-v1 (continuous actions)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per system (>= 3 for a real comparison)")
     ap.add_argument("--quick", action="store_true", help="1 seed each and --cap-s 240")
     ap.add_argument("--cap-s", type=float, default=900.0, help="wall-clock cap per run (unsolved after it)")
@@ -293,6 +410,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.algo == "r2d2":
         r2d2_main(args)
+        return
+    if args.algo == "pendulum":
+        pendulum_main(args)
         return
     load_start = os.getloadavg()
     seeds = 1 if args.quick else args.seeds

@@ -199,6 +199,7 @@ class ImpalaConfig(_Section):
     entropy_coef: float = Field(0.01, ge=0, description="Entropy bonus coefficient.")
     clip_eps: Optional[float] = Field(None, gt=0, lt=1, description="null: IMPALA's V-trace policy gradient; a number: APPO, PPO's clipped surrogate with ratio pi/mu clipped to [1 - clip_eps, 1 + clip_eps] on V-trace advantages.")
     normalize_advantages: bool = Field(False, description="APPO: normalize the advantages over each batch (mean 0, std 1).")
+    reward_scale: float = Field(1.0, gt=0, le=1e3, description="The learner multiplies the rewards by this before V-trace (the value function learns scaled returns; evaluation returns are the env's). For envs whose rewards are large (e.g. Pendulum's -16 per step): the gradient is clipped as a whole (max_grad_norm), so a large value loss would crowd out the policy's gradient.")
     max_policy_lag: int = Field(16, ge=0, description="Drop (and count) unrolls acted with a policy more than this many weights versions behind the learner's.")
     queue_max_unrolls: int = Field(256, ge=1, description="Unrolls the learner's queue holds at most (the oldest of the biggest source is evicted first).")
     queue_max_bytes: int = Field(256 * 1024 * 1024, ge=1024, description="Decoded bytes the learner's queue holds at most.")

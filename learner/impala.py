@@ -89,7 +89,8 @@ class ImpalaLearner(LearnerBase):
         self.opt = make_optimizer(self.net.parameters(), cfg.learner, cfg.a3c)
         self.loss_params = LossParams(gamma=cfg.learner.gamma, lam=icfg.lam, rho_bar=icfg.rho_bar, c_bar=icfg.c_bar,
                                       value_coef=icfg.value_coef, entropy_coef=icfg.entropy_coef,
-                                      clip_eps=icfg.clip_eps, normalize_advantages=icfg.normalize_advantages)
+                                      clip_eps=icfg.clip_eps, normalize_advantages=icfg.normalize_advantages,
+                                      reward_scale=icfg.reward_scale)
         self.guard = UpdateGuard(cfg.learner.guard_max_bad_updates, cfg.learner.guard_log_interval_s)
         self.queue = UnrollQueue(icfg.queue_max_unrolls, icfg.queue_max_bytes, icfg.max_policy_lag)
         env = make_env(cfg.env)

@@ -36,7 +36,10 @@ MAX_LOG_RHO = 20.0
 
 @dataclass(frozen=True)
 class LossParams:
-    """``clip_eps`` None: IMPALA's policy gradient; a number: APPO's clipped surrogate."""
+    """``clip_eps`` None: IMPALA's policy gradient; a number: APPO's clipped surrogate.
+    ``reward_scale``: the rewards are multiplied by it before anything else (the value function
+    learns scaled returns; with the gradient clipped as a whole, rewards of large magnitude
+    would otherwise let the value loss's gradient crowd out the policy's)."""
 
     gamma: float = 0.99
     lam: float = 1.0
@@ -46,6 +49,7 @@ class LossParams:
     entropy_coef: float = 0.01
     clip_eps: float | None = None
     normalize_advantages: bool = False
+    reward_scale: float = 1.0
 
 
 def policy_logp_entropy(logits: torch.Tensor, action: torch.Tensor,
@@ -80,6 +84,8 @@ def impala_loss(logits: torch.Tensor, values: torch.Tensor, bootstrap_value: tor
     Returns (loss scalar, stats: loss, policy_loss, value_loss, entropy, rho_mean, rho_max,
     clip_fraction (APPO: |ratio - 1| > eps; IMPALA: rho > rho_bar), advantage_mean, vs_mean)."""
     logp, entropies = policy_logp_entropy(logits, action, log_std)
+    if p.reward_scale != 1.0:
+        reward = reward * p.reward_scale
     log_rhos = (logp.detach() - behaviour_logp).clamp(max=MAX_LOG_RHO)
     vt = vtrace(log_rhos, reward, values.detach(), bootstrap_value.detach(), terminated, truncated,
                 None if truncated_values is None else truncated_values.detach(),

@@ -232,7 +232,7 @@ def _np_gauss_step(w, us, p: LossParams):
     boot = v_all[N:].copy()
     act = np.stack([u.action for u in us], axis=1).reshape(N, DA).astype(np.float64)
     mu_logp = np.stack([u.behaviour_logp for u in us], axis=1).astype(np.float64)
-    r = np.stack([u.reward for u in us], axis=1).astype(np.float64)
+    r = np.stack([u.reward for u in us], axis=1).astype(np.float64) * p.reward_scale
     term = np.stack([u.terminated for u in us], axis=1)
     trunc = np.stack([u.truncated for u in us], axis=1)
     final_v = np.zeros((T, B))
@@ -279,8 +279,9 @@ def _np_gauss_step(w, us, p: LossParams):
 
 
 @pytest.mark.parametrize("p", [LossParams(gamma=0.9, entropy_coef=0.05), LossParams(gamma=0.9, clip_eps=0.2),
-                               LossParams(gamma=0.9, clip_eps=0.1, normalize_advantages=True, entropy_coef=0.01)],
-                         ids=["impala", "appo", "appo-normalized"])
+                               LossParams(gamma=0.9, clip_eps=0.1, normalize_advantages=True, entropy_coef=0.01),
+                               LossParams(gamma=0.9, clip_eps=0.2, reward_scale=0.1)],
+                         ids=["impala", "appo", "appo-normalized", "appo-reward-scale"])
 def test_one_learner_step_with_continuous_actions_matches_numpy(p):
     net = _gauss_net()
     assert net.continuous
