@@ -32,7 +32,7 @@ from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, FirstWeights, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
-from zenrl.common.networks import ActorCritic, num_actions, obs_spec, set_compute_threads
+from zenrl.common.networks import ActorCritic, action_size, obs_spec, set_compute_threads
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class A3CWorker(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        n_actions = num_actions(envs.single_action_space, cfg.algo)
+        n_actions = action_size(envs.single_action_space, cfg.algo)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, worker_id, slot,
                                       lambda: ActorCritic(spec, n_actions, cfg.network))
@@ -61,7 +61,7 @@ class A3CWorker(ActorWorker):
             self.net, keys, worker_id, a.t_max, cfg.learner.gamma, a.value_coef, a.entropy_coef, a.gae_lambda,
             lambda: weights.version, cfg.transport.max_message_bytes)
         super().__init__(keys, worker_id, slot, envs,
-                         Sampling(self.net, n_actions, np.random.default_rng(cfg.seed + 7919 * (slot + 1))),
+                         Sampling(self.net, int(n_actions), np.random.default_rng(cfg.seed + 7919 * (slot + 1))),
                          self.adder, weights, FirstWeights(min(2.0, cfg.transport.query_timeout_s)),
                          poll_steps=cfg.actor.weights_poll_steps, report_s=cfg.actor.episode_report_s,
                          query_timeout_s=cfg.transport.query_timeout_s, episode_epsilon=0.0,

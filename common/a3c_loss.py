@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from zenrl.common.networks import to_tensors
+from zenrl.common.networks import policy_logp_entropy, to_tensors
 
 
 def nstep_returns(rewards: np.ndarray, terminated: np.ndarray, truncated: np.ndarray,
@@ -73,20 +73,22 @@ def gae_returns(rewards: np.ndarray, terminated: np.ndarray, truncated: np.ndarr
 
 
 def a3c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor,
-             value_coef: float, entropy_coef: float) -> tuple[torch.Tensor, dict[str, float]]:
+             value_coef: float, entropy_coef: float,
+             log_std: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The A3C loss, averaged over N = T * E samples.
 
     logits float[N, A], values float[N] (V(s_t), with grad), actions int64[N], returns float[N]
     (targets, no grad). ``loss = policy_loss + value_coef * value_loss - entropy_coef * entropy``
     with ``policy_loss = -mean(log pi(a|s) * (R - V(s)).detach())``,
-    ``value_loss = mean((R - V(s))^2)``, ``entropy = mean(H(pi(.|s)))``.
-    Returns (loss scalar, metrics).
+    ``value_loss = mean((R - V(s))^2)``, ``entropy = mean(H(pi(.|s)))``. Continuous actions:
+    ``logits`` the Gaussian's means float[N, d], ``actions`` float[N, d], ``log_std`` float[d]
+    (:func:`~zenrl.common.networks.policy_logp_entropy`). Returns (loss scalar, metrics).
     """
-    logp = F.log_softmax(logits, dim=1)
+    logp, entropies = policy_logp_entropy(logits, actions, log_std)
     advantage = returns - values.detach()
-    policy_loss = -(logp.gather(1, actions.long().unsqueeze(1)).squeeze(1) * advantage).mean()
+    policy_loss = -(logp * advantage).mean()
     value_loss = F.mse_loss(values, returns)
-    entropy = -(logp.exp() * logp).sum(dim=1).mean()
+    entropy = entropies.mean()
     loss = policy_loss + value_coef * value_loss - entropy_coef * entropy
     m = {"loss": loss, "policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
          "advantage_mean": advantage.mean()}
@@ -96,7 +98,7 @@ def a3c_loss(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor, 
 @dataclass
 class Rollout:
     """t_max steps of E envs. obs: ``{name: array[T, E, ...]}`` (the observations acted on);
-    actions int64[T, E]; rewards float32[T, E]; terminated, truncated bool[T, E];
+    actions int64[T, E] (float32[T, E, d]: continuous); rewards float32[T, E]; terminated, truncated bool[T, E];
     final_obs: ``{name: array[K, ...]}``, the final observations of the K steps with
     ``truncated & ~terminated``, in row-major (t, e) order; last_obs: ``{name: array[E, ...]}``,
     the observations after the last step (reset observations where an episode just ended)."""
@@ -111,7 +113,8 @@ class Rollout:
 
     @property
     def steps(self) -> int:
-        return int(self.actions.size)
+        """T * E, the env steps of the rollout."""
+        return int(self.actions.shape[0] * self.actions.shape[1])
 
 
 def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coef: float,
@@ -123,7 +126,7 @@ def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coe
     only feed the targets: :func:`nstep_returns` (``gae_lambda`` = 1, A3C) or
     :func:`gae_returns`. Returns (``{parameter name: float32 array}``, metrics).
     """
-    T, E = ro.actions.shape
+    T, E = ro.actions.shape[:2]
     N = T * E
     trunc_idx = np.flatnonzero((ro.truncated & ~ro.terminated).reshape(-1))
     K = trunc_idx.size
@@ -143,8 +146,9 @@ def rollout_gradients(net: torch.nn.Module, ro: Rollout, gamma: float, value_coe
     else:
         returns = gae_returns(ro.rewards, ro.terminated, ro.truncated, values[:N].detach().numpy().reshape(T, E),
                               final_values.reshape(T, E), extra[:E], gamma, gae_lambda)
-    loss, m = a3c_loss(logits[:N], values[:N], torch.from_numpy(ro.actions.reshape(N)),
-                       torch.from_numpy(returns.reshape(N)), value_coef, entropy_coef)
+    log_std = net.clamped_log_std() if getattr(net, "continuous", False) else None
+    loss, m = a3c_loss(logits[:N], values[:N], torch.from_numpy(ro.actions.reshape(N, *ro.actions.shape[2:])),
+                       torch.from_numpy(returns.reshape(N)), value_coef, entropy_coef, log_std)
     net.zero_grad(set_to_none=True)
     loss.backward()
     grads = {}

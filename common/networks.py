@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 from torch import nn
+from torch.nn import functional as F
 
 from zenrl.common.config import NetworkConfig
 from zenrl.common.specs import ArraySpec, obs_fields
@@ -78,7 +79,7 @@ def num_actions(space: gym.Space, algo: str | None = None) -> int:
     needs); any other space is a :class:`ValueError` naming ``algo`` (the algorithm asking)."""
     if not isinstance(space, gym.spaces.Discrete):
         who = f"algo: {algo}" if algo else "this algorithm"
-        hint = "; algo: impala (IMPALA / APPO) takes continuous (Box) actions" if isinstance(space, gym.spaces.Box) else ""
+        hint = "; algo: impala (IMPALA / APPO) and a3c take continuous (Box) actions" if isinstance(space, gym.spaces.Box) else ""
         raise ValueError(f"{who} needs a Discrete action space, got {space}{hint}")
     return int(space.n)
 
@@ -97,7 +98,7 @@ def policy_actions(space: gym.Space) -> int:
 
 
 #: The algorithms whose actor-critic takes continuous (Box) actions.
-CONTINUOUS_ALGOS = frozenset({"impala"})
+CONTINUOUS_ALGOS = frozenset({"impala", "a3c"})
 
 
 def action_size(space: gym.Space, algo: str) -> int:
@@ -116,6 +117,26 @@ def is_continuous(n_actions: int) -> bool:
 #: arbitrarily large); above, its samples would almost all be clipped to the bounds.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def policy_logp_entropy(logits: torch.Tensor, action: torch.Tensor,
+                        log_std: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """log pi(a|x) and the policy's entropy H(pi(.|x)), both float[...] over the samples' leading
+    dimensions ([T, B] below; [N] works alike).
+
+    Categorical (``log_std`` None): ``logits`` float[T, B, A], ``action`` int64[T, B].
+    Gaussian (continuous actions): ``logits`` the means float[T, B, d], ``action`` float[T, B, d],
+    ``log_std`` float[d] (clamped); independent normals, so both are sums over the d dimensions:
+    ``log pi = sum(-(a - mu)^2 / (2 sigma^2) - log sigma - log(2 pi) / 2)``,
+    ``H = sum(log sigma + (1 + log(2 pi)) / 2)``."""
+    if log_std is None:
+        logp_all = F.log_softmax(logits, dim=-1)
+        logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+        return logp, -(logp_all.exp() * logp_all).sum(-1)
+    z = (action.to(logits.dtype) - logits) * torch.exp(-log_std)
+    logp = (-0.5 * z * z - log_std - _HALF_LOG_2PI).sum(-1)
+    entropy = (log_std + 0.5 + _HALF_LOG_2PI).sum().expand_as(logp)
+    return logp, entropy
 
 
 def gaussian_logp(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:

@@ -24,10 +24,9 @@ from typing import Callable
 import torch
 from torch.nn import functional as F
 
+from zenrl.common.networks import policy_logp_entropy
 from zenrl.learner.unroll_queue import UnrollBatch
 from zenrl.learner.vtrace import vtrace
-
-HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 #: log(pi/mu) is capped here before exp: a ratio of e^20 is already absurd, and the cap keeps
 #: the statistics finite when a behaviour log-probability is extreme.
@@ -52,25 +51,6 @@ class LossParams:
     reward_scale: float = 1.0
 
 
-def policy_logp_entropy(logits: torch.Tensor, action: torch.Tensor,
-                        log_std: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """log pi(a|x) and the policy's entropy H(pi(.|x)), both float[T, B].
-
-    Categorical (``log_std`` None): ``logits`` float[T, B, A], ``action`` int64[T, B].
-    Gaussian (continuous actions): ``logits`` the means float[T, B, d], ``action`` float[T, B, d],
-    ``log_std`` float[d] (clamped); independent normals, so both are sums over the d dimensions:
-    ``log pi = sum(-(a - mu)^2 / (2 sigma^2) - log sigma - log(2 pi) / 2)``,
-    ``H = sum(log sigma + (1 + log(2 pi)) / 2)``."""
-    if log_std is None:
-        logp_all = F.log_softmax(logits, dim=-1)
-        logp = logp_all.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
-        return logp, -(logp_all.exp() * logp_all).sum(-1)
-    z = (action.to(logits.dtype) - logits) * torch.exp(-log_std)
-    logp = (-0.5 * z * z - log_std - HALF_LOG_2PI).sum(-1)
-    entropy = (log_std + 0.5 + HALF_LOG_2PI).sum().expand_as(logp)
-    return logp, entropy
-
-
 def impala_loss(logits: torch.Tensor, values: torch.Tensor, bootstrap_value: torch.Tensor,
                 truncated_values: torch.Tensor | None, action: torch.Tensor, behaviour_logp: torch.Tensor,
                 reward: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor,
@@ -80,7 +60,7 @@ def impala_loss(logits: torch.Tensor, values: torch.Tensor, bootstrap_value: tor
     truncated steps' final observations: detached, they only feed the targets); action
     int64[T, B]; behaviour_logp, reward float[T, B]; terminated, truncated bool[T, B].
     Continuous actions: ``log_std`` float[d] (with grad), ``logits`` the means float[T, B, d],
-    ``action`` float[T, B, d] (:func:`policy_logp_entropy`).
+    ``action`` float[T, B, d] (:func:`~zenrl.common.networks.policy_logp_entropy`).
     Returns (loss scalar, stats: loss, policy_loss, value_loss, entropy, rho_mean, rho_max,
     clip_fraction (APPO: |ratio - 1| > eps; IMPALA: rho > rho_bar), advantage_mean, vs_mean)."""
     logp, entropies = policy_logp_entropy(logits, action, log_std)

@@ -43,8 +43,8 @@ def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
 @pytest.mark.parametrize("sets, reason", [
     (("env.id=CartPol-v1",), "Did you mean: `CartPole`"),
     (("env.id=Pendulum-v1",), "algo: apex needs a Discrete action space"),
-    (("algo=a3c", "env.id=Pendulum-v1"), "algo: a3c needs a Discrete action space, got Box(-1.0, 1.0, (1,), float32); "
-                                         "algo: impala (IMPALA / APPO) takes continuous (Box) actions"),
+    (("algo=r2d2", "env.id=Pendulum-v1"), "algo: r2d2 needs a Discrete action space, got Box(-1.0, 1.0, (1,), float32); "
+                                          "algo: impala (IMPALA / APPO) and a3c take continuous (Box) actions"),
     (("env.kwargs={gravity_typo: 1}",), "unexpected keyword argument 'gravity_typo'"),
 ])
 def test_env_mistake_fails_at_once_with_its_reason(tmp_path, run_id, sets, reason):

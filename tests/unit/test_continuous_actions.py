@@ -50,8 +50,8 @@ def test_policy_size_per_space_and_algorithm():
     box = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
     assert policy_actions(box) == 3 and isinstance(policy_actions(box), BoxActions)
     assert policy_actions(gym.spaces.Discrete(4)) == 4 and not isinstance(policy_actions(gym.spaces.Discrete(4)), BoxActions)
-    assert isinstance(action_size(box, "impala"), BoxActions)
-    for algo in ("apex", "r2d2", "a3c"):
+    assert isinstance(action_size(box, "impala"), BoxActions) and isinstance(action_size(box, "a3c"), BoxActions)
+    for algo in ("apex", "r2d2"):
         with pytest.raises(ValueError, match=f"algo: {algo} needs a Discrete action space.*algo: impala"):
             action_size(box, algo)
     with pytest.raises(ValueError, match="1-D Box"):
@@ -173,3 +173,50 @@ def test_discrete_checks_refuse_continuous_actions():
     assert _reason(u, checker) == "action_range"
     assert _reason(_unroll(action=np.array([0, 1, 2, 1, 0], np.int64), behaviour_logp=np.full(T, -1.0, np.float32)),
                    checker) is None
+
+
+# -- A3C on continuous actions ------------------------------------------------------------------
+def test_a3c_loss_of_a_gaussian_policy_by_hand():
+    """``a3c_loss`` with a log std: the loss terms and their gradients w.r.t. the means, the log
+    std and the values, written out (d logp / d mean = (a - mean) / sd^2, d logp / d log sd =
+    z^2 - 1, dH / d log sd = 1 per dimension)."""
+    from zenrl.common.a3c_loss import a3c_loss
+
+    rng = np.random.default_rng(5)
+    N, d, vc, ec = 6, 2, 0.5, 0.03
+    mean = torch.tensor(rng.uniform(-0.9, 0.9, (N, d)), dtype=torch.float64, requires_grad=True)
+    log_std = torch.tensor([-0.4, 0.3], dtype=torch.float64, requires_grad=True)
+    values = torch.tensor(rng.normal(size=N), dtype=torch.float64, requires_grad=True)
+    actions = rng.normal(scale=1.2, size=(N, d))
+    returns = rng.normal(size=N)
+    loss, m = a3c_loss(mean, values, torch.from_numpy(actions), torch.from_numpy(returns), vc, ec, log_std)
+    loss.backward()
+    mu, ls, v = mean.detach().numpy(), log_std.detach().numpy(), values.detach().numpy()
+    sd = np.exp(ls)
+    logp = np.array([_normal_logpdf(actions[i], mu[i], sd) for i in range(N)])
+    adv = returns - v
+    entropy = float(np.sum(ls + 0.5 + 0.5 * np.log(2 * np.pi)))
+    assert m["policy_loss"] == pytest.approx(-np.mean(logp * adv), rel=1e-9)
+    assert m["entropy"] == pytest.approx(entropy, rel=1e-9)
+    assert m["value_loss"] == pytest.approx(np.mean(adv ** 2), rel=1e-9)
+    assert float(loss.detach()) == pytest.approx(-np.mean(logp * adv) + vc * np.mean(adv ** 2) - ec * entropy, rel=1e-9)
+    z = (actions - mu) / sd
+    np.testing.assert_allclose(mean.grad.numpy(), -(adv / N)[:, None] * z / sd, rtol=1e-9)
+    np.testing.assert_allclose(log_std.grad.numpy(), (-(adv / N)[:, None] * (z ** 2 - 1)).sum(0) - ec, rtol=1e-9)
+    np.testing.assert_allclose(values.grad.numpy(), -2 * vc * adv / N, rtol=1e-9)
+
+
+def test_a3c_rollout_of_continuous_actions_counts_env_steps():
+    from zenrl.common.a3c_loss import Rollout, rollout_gradients
+
+    net = _net(d=2)
+    T_, E = 4, 3
+    rng = np.random.default_rng(0)
+    ro = Rollout(obs={"obs": rng.normal(size=(T_, E, 3)).astype(np.float32)},
+                 actions=rng.normal(size=(T_, E, 2)).astype(np.float32), rewards=np.ones((T_, E), np.float32),
+                 terminated=np.zeros((T_, E), bool), truncated=np.zeros((T_, E), bool),
+                 final_obs={"obs": np.zeros((0, 3), np.float32)}, last_obs={"obs": np.zeros((E, 3), np.float32)})
+    assert ro.steps == T_ * E
+    grads, m = rollout_gradients(net, ro, 0.9, 0.5, 0.0)
+    assert set(grads) == {k for k, _ in net.named_parameters()} and grads["log_std"].shape == (2,)
+    assert all(np.isfinite(g).all() for g in grads.values()) and np.abs(grads["log_std"]).sum() > 0
