@@ -39,7 +39,6 @@ import torch
 from zenrl.common.checkpoints import list_checkpoints, read_checkpoint
 from zenrl.common.config import OpponentsConfig, RunConfig, SelfPlayConfig
 from zenrl.common.errors import CheckpointError, ConfigError, ZenrlError
-from zenrl.common.networks import num_actions
 from zenrl.common.policy_io import ExportedPlayer, GreedyPolicy, build_network, is_exported
 
 log = logging.getLogger(__name__)
@@ -192,7 +191,8 @@ def build_pool(cfg: OpponentsConfig, env: gym.Env) -> OpponentPool:
     """The pool of ``cfg.pool`` for ``env`` (a single match env): every file loaded and checked
     against the env's spaces, every bot name tried with one reset of ``env``. A bad entry is a
     :class:`ConfigError` naming it (``opponents.pool.<name>: ...``)."""
-    pool = OpponentPool(num_actions(env.action_space))
+    # frozen policies need the action count (their epsilon draws); bots play any action set
+    pool = OpponentPool(env.action_space.n if isinstance(env.action_space, gym.spaces.Discrete) else 0)
     if cfg.pool and not hasattr(env.unwrapped, "opponent_policy"):
         raise ConfigError(f"opponents.pool needs a match env (zenrl/BurgerWar*), not {env.spec.id if env.spec else env!r}")
     for name, spec in cfg.pool.items():
@@ -214,9 +214,24 @@ def build_pool(cfg: OpponentsConfig, env: gym.Env) -> OpponentPool:
 
 def check_opponents(cfg: RunConfig, env: gym.Env) -> None:
     """Load and check ``cfg.opponents`` against ``env`` once (what ``zenrl run`` calls before it
-    starts anything): :class:`ConfigError` naming the first bad entry."""
+    starts anything): :class:`ConfigError` naming the first bad entry. Frozen policies (the pool's
+    and self-play's snapshots) act through a discrete action set: a continuous one is refused."""
+    require_discrete_for_frozen(cfg, env.action_space, league=cfg.league.enabled)
     if cfg.opponents.pool:
         build_pool(cfg.opponents, env)
+
+
+def require_discrete_for_frozen(cfg: RunConfig, action_space: gym.Space, league: bool = False) -> None:
+    """Frozen policies play a match through its discrete action set (a policy's action index is
+    the opponent robot's command): with a continuous one, self-play, a league or frozen policies
+    in ``opponents.pool`` are a :class:`ConfigError` naming which."""
+    if isinstance(action_space, gym.spaces.Discrete):
+        return
+    what = ("a league" if league else "selfplay" if cfg.selfplay.enabled else
+            "opponents.pool's frozen policies" if any(spec.path is not None for spec in cfg.opponents.pool.values()) else None)
+    if what is not None:
+        raise ConfigError(f"{what} needs a discrete action set; {cfg.env.id} with env.kwargs={dict(cfg.env.kwargs)} "
+                          f"has {action_space} (scripted bots play against any set)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,6 +417,7 @@ def wrap_opponents(envs: list[gym.Env], cfg: RunConfig, run_id: str, seed: int, 
     there is nothing to wrap. A bad pool entry is a :class:`ConfigError` (at start)."""
     if not cfg.opponents.pool and not cfg.selfplay.enabled and chooser is None:
         return envs
+    require_discrete_for_frozen(cfg, envs[0].action_space, league=chooser is not None)
     pool = build_pool(cfg.opponents, envs[0])
     pick: Chooser = weighted_choice
     if cfg.selfplay.enabled:

@@ -220,3 +220,30 @@ def test_a3c_rollout_of_continuous_actions_counts_env_steps():
     grads, m = rollout_gradients(net, ro, 0.9, 0.5, 0.0)
     assert set(grads) == {k for k, _ in net.named_parameters()} and grads["log_std"].shape == (2,)
     assert all(np.isfinite(g).all() for g in grads.values()) and np.abs(grads["log_std"]).sum() > 0
+
+
+# -- match opponents on a continuous action set -------------------------------------------------
+@pytest.mark.parametrize("sets, refused", [
+    (["selfplay.enabled=true"], "selfplay needs a discrete action set"),
+    (["league.enabled=true"], "a league needs a discrete action set"),
+    (["opponents.pool={me: {path: nowhere.pt}}"], "opponents.pool's frozen policies need"),
+    (["opponents.pool={c: {bot: cheese}, w: {bot: waypoint}}"], None),
+], ids=["selfplay", "league", "frozen policy", "bots"])
+def test_frozen_opponents_need_a_discrete_action_set(sets, refused):
+    """A frozen policy's action is an index of the match's action set: self-play, a league and
+    frozen policies in the pool are refused at start on the continuous set, scripted bots play."""
+    from zenrl.common.config import load_config
+    from zenrl.common.errors import ConfigError
+    from zenrl.common.opponents import check_opponents
+
+    cfg = load_config(None, ["algo=impala", "env.id=zenrl/BurgerWar-v0", "env.kwargs={action_set: continuous}", *sets])
+    env = make_env(cfg.env)
+    try:
+        assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        if refused is None:
+            check_opponents(cfg, env)
+        else:
+            with pytest.raises(ConfigError, match=refused):
+                check_opponents(cfg, env)
+    finally:
+        env.close()
