@@ -166,6 +166,8 @@ def load_frozen(path: str | os.PathLike[str], exported: bool, observation_space:
     as such, other observation or action spaces) is a :class:`ConfigError` starting with
     ``where``."""
     p = Path(path)
+    if not isinstance(action_space, gym.spaces.Discrete):
+        raise ConfigError(f"{where}: a frozen policy plays through a discrete action set; this env's is {action_space}")
     if not p.is_file():
         raise ConfigError(f"{where}: {str(p)!r} does not exist")
     if is_exported(p):

@@ -247,3 +247,15 @@ def test_frozen_opponents_need_a_discrete_action_set(sets, refused):
                 check_opponents(cfg, env)
     finally:
         env.close()
+
+
+def test_a_policy_opponent_on_a_continuous_action_set_is_refused_by_the_tools(tmp_path):
+    from zenrl.common.errors import ConfigError, ZenrlError
+    from zenrl.common.opponents import load_frozen
+    from zenrl.tools.loading import load_player
+
+    box = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    with pytest.raises(ZenrlError, match="discrete action set"):
+        load_player(tmp_path / "ckpt.pt", OBS_SPACE, box)
+    with pytest.raises(ConfigError, match="opponents.pool.x: a frozen policy plays through a discrete action set"):
+        load_frozen(tmp_path / "ckpt.pt", False, OBS_SPACE, box, "opponents.pool.x")

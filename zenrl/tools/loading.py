@@ -86,7 +86,11 @@ def refuse_unasked_export(path: str | os.PathLike[str], allow_exported: bool) ->
 def load_player(path: str | os.PathLike[str], observation_space: gym.Space, action_space: gym.Space,
                 allow_exported: bool = False):
     """A checkpoint or (with ``allow_exported``) an exported file -> ``player(obs) -> int``
-    (greedy) for an env with these single spaces; a mismatch is a :class:`ZenrlError` naming it."""
+    (greedy) for an env with these single spaces; a mismatch is a :class:`ZenrlError` naming it.
+    An opponent's action is an index of the match's action set: a continuous set is refused."""
+    if not isinstance(action_space, gym.spaces.Discrete):
+        raise ZenrlError(f"{path}: a policy plays the other robot through a discrete action set; this env's is "
+                         f"{action_space} (scripted bots play against any set)")
     if refuse_unasked_export(path, allow_exported):
         player = ExportedPlayer(path)
         player.check_spaces(observation_space, action_space)
