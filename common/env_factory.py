@@ -45,8 +45,10 @@ class NormalisedActions(gym.ActionWrapper):
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
         inner = env.action_space
-        self._low = inner.low.astype(np.float64)
-        self._span = inner.high.astype(np.float64) - self._low
+        #: float64[d]: the env's own bounds, which [-1, 1] maps onto
+        self.low, self.high = inner.low.astype(np.float64), inner.high.astype(np.float64)
+        self._low = self.low
+        self._span = self.high - self.low
         self._dtype = inner.dtype
         self.action_space = gym.spaces.Box(-1.0, 1.0, inner.shape, np.float32)
 

@@ -186,7 +186,9 @@ def is_exported(path: str | os.PathLike[str]) -> bool:
 class ExportedPlayer:
     """``player(obs) -> int`` for one observation, from a ``zenrl export`` file: the greedy policy
     as TorchScript plus its ``zenrl.json`` description (env id and kwargs, input shapes and dtypes,
-    number of actions). ``meta`` is that description.
+    number of actions). ``meta`` is that description. A continuous policy's program returns the
+    action in the env's units (``action_bounds``); the player gives it in the [-1, 1] units of
+    zenrl's envs (float32[d]).
 
     A TorchScript file is a program (its graph runs when called): load only files you trust, such
     as the ones in ``models/``. Checkpoints (``torch.load(weights_only=True)``) carry weights only.
@@ -206,6 +208,9 @@ class ExportedPlayer:
         self.module.eval()
         self.name = Path(path).name
         self.n_actions = int(self.meta.get("n_actions", 0))
+        #: continuous actions: the env's (low, high) the program's output lies within; None: an index
+        b = self.meta.get("action_bounds")
+        self.bounds = (np.asarray(b["low"], np.float64), np.asarray(b["high"], np.float64)) if isinstance(b, dict) else None
         self.keys = list(self.meta["inputs"])
         self.dict_obs = self.keys != ["obs"]
         #: a mixed policy's member count (``zenrl export --member``); 1 for one network
@@ -238,6 +243,11 @@ class ExportedPlayer:
             if list(sp.shape) != list(want.get("shape", [])) or str(sp.dtype) != want.get("dtype"):
                 raise ZenrlError(f"{self.name}: input {k!r} exported as {want.get('dtype')}{want.get('shape')}, "
                                  f"the env gives {sp.dtype}{list(sp.shape)}")
+        if self.bounds is not None:  # zenrl's envs present a continuous action space as [-1, 1]^d
+            if not isinstance(action_space, gym.spaces.Box) or action_space.shape != (self.n_actions,):
+                raise ZenrlError(f"{self.name}: exported for continuous actions of {self.n_actions} dimensions, "
+                                 f"the env has {action_space}")
+            return
         n = getattr(action_space, "n", None)
         if n is None or int(n) != self.n_actions:
             raise ZenrlError(f"{self.name}: exported for {self.n_actions} actions, the env has {action_space}")
@@ -253,7 +263,7 @@ class ExportedPlayer:
         if self.members > 1:
             self.current = int(self.rng.integers(self.members))
 
-    def __call__(self, obs: Any) -> int:
+    def __call__(self, obs: Any) -> int | np.ndarray:
         if self.members > 1:
             self.module.pick(self.current)
         with torch.no_grad():
@@ -261,7 +271,11 @@ class ExportedPlayer:
                 x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}
             else:
                 x = torch.as_tensor(np.ascontiguousarray(obs))
-            return int(self.module(x))
+            out = self.module(x)
+        if self.bounds is not None:  # the env's units back to the [-1, 1] zenrl's envs take
+            low, high = self.bounds
+            return (2.0 * (out.double().numpy() - low) / (high - low) - 1.0).astype(np.float32)
+        return int(out)
 
 
 def initial_q_weights(path: str | os.PathLike[str], exported: bool) -> dict[str, torch.Tensor]:

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 import uuid
+import warnings
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ import torch
 from tests.conftest import ROOT, free_port, wait_until, zenrl_pids
 from zenrl.common import protocol as P
 from zenrl.common.checkpoints import ImpalaTrainingState, read_checkpoint
+from zenrl.common.networks import ActorCritic, BoxActions
+from zenrl.common.specs import ArraySpec
 
 pytestmark = pytest.mark.integration
 
@@ -121,8 +124,8 @@ def test_zenrl_run_appo_takes_continuous_actions(tmp_path):
     """Pendulum-v1 (a Box action space) under the shipped APPO config, with an update budget: the
     actors' float actions and log-densities reach the learner and none is rejected, every update
     trains on T * B env steps, the evaluator's greedy (mean) returns are Pendulum returns; the
-    checkpoint plays under `zenrl evaluate` with either policy, and `zenrl export` refuses it in
-    one line (an exported policy returns an action index)."""
+    checkpoint plays under `zenrl evaluate` with either policy, and `zenrl export` writes a
+    program that returns the mean action in the env's units and plays as the checkpoint does."""
     run_id = f"e2e-appo-box-{uuid.uuid4().hex[:8]}"
     run_dir, summary = _pendulum_run(tmp_path, run_id, "max_updates=600", "target_return=null", "evaluator.interval_s=1")
     logs = {f.name: f.read_text()[-3000:] for f in (run_dir / "logs").glob("*.log")}
@@ -144,10 +147,30 @@ def test_zenrl_run_appo_takes_continuous_actions(tmp_path):
         res = json.loads((tmp_path / f"{policy}.json").read_text())
         assert res["env"] == "Pendulum-v1" and len(res["results"]) == 2
         assert all(PENDULUM_WORST <= r["ret"] <= 0 and r["length"] == 200 for r in res["results"]), res["results"]
+    # exported: a program that returns the mean torque in the env's units, [-2, 2] for Pendulum
     ex = _zenrl("export", "--checkpoint", str(run_dir), "--out", str(tmp_path / "p.pt"), timeout_s=120)
-    errors = [x for x in ex.stderr.splitlines() if x.startswith("zenrl: error:")]
-    assert ex.returncode != 0 and len(errors) == 1 and "continuous-action policy cannot be exported" in errors[0], ex.stderr
-    assert "Traceback" not in ex.stderr and not (tmp_path / "p.pt").exists()
+    assert ex.returncode == 0, ex.stderr[-3000:]
+    extra = {"zenrl.json": ""}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # torch 2.13 deprecates TorchScript
+        program = torch.jit.load(str(tmp_path / "p.pt"), _extra_files=extra)
+    meta = json.loads(extra["zenrl.json"])
+    assert meta["action_bounds"] == {"low": [-2.0], "high": [2.0]} and meta["n_actions"] == 1
+    net = ActorCritic({"obs": ArraySpec((3,), "float32")}, BoxActions(1), state.run_config().network)
+    net.load_state_dict(state.policy_state())
+    obs = np.random.default_rng(0).uniform([-1, -1, -8], [1, 1, 8]).astype(np.float32)
+    with torch.no_grad():
+        want = 2.0 * net({"obs": torch.from_numpy(obs[None])})[0][0]
+        got = program(torch.from_numpy(obs))
+    assert got.dtype == torch.float32 and got.shape == (1,) and float(got.abs().max()) <= 2.0
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    # and plays as the checkpoint does: the same greedy returns on the same seeds
+    ev = _zenrl("evaluate", "--checkpoint", str(tmp_path / "p.pt"), "--exported", "--episodes", "2", "--workers", "1",
+                "--no-progress", "--json", str(tmp_path / "exported.json"), timeout_s=300)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    greedy = json.loads((tmp_path / "greedy.json").read_text())["results"]
+    exported = json.loads((tmp_path / "exported.json").read_text())["results"]
+    assert [r["ret"] for r in exported] == pytest.approx([r["ret"] for r in greedy], rel=1e-4)
 
 
 @pytest.mark.slow

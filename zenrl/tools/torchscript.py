@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from zenrl.common.env_factory import NormalisedActions
 from zenrl.common.errors import ZenrlError
 from zenrl.games.burgerwar import geometry as geo
 from zenrl.common.recurrent import RecurrentQNetwork
@@ -24,13 +25,21 @@ class ExportedPolicy(torch.nn.Module):
     Dict observation space: ``forward({"lidar": float[360], "pose": float[4], ...})`` keyed like
     the env's observation space; plain Box space: ``forward(tensor)``. Preprocessing is inside
     (uint8 camera images are scaled by 1/255, other inputs cast to float32).
+
+    A Gaussian actor-critic (continuous actions) with ``bounds`` = the env's ``(low, high)``:
+    float32[d], its mean action mapped from [-1, 1] onto the env's bounds (what the robot takes).
     """
 
-    def __init__(self, net: torch.nn.Module, keys: Sequence[str], dict_obs: bool) -> None:
+    def __init__(self, net: torch.nn.Module, keys: Sequence[str], dict_obs: bool,
+                 bounds: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         super().__init__()
         self.net = net
         self.keys = list(keys)
         self.dict_obs = dict_obs
+        self.continuous = bounds is not None
+        if bounds is not None:
+            self.register_buffer("low", torch.as_tensor(np.asarray(bounds[0], np.float32)))
+            self.register_buffer("span", torch.as_tensor(np.asarray(bounds[1], np.float32) - np.asarray(bounds[0], np.float32)))
 
     def forward(self, obs: Any) -> torch.Tensor:
         if self.dict_obs:
@@ -40,6 +49,8 @@ class ExportedPolicy(torch.nn.Module):
         out = self.net(flat)
         if isinstance(out, tuple):
             out = out[0]
+        if self.continuous:
+            return self.low + (out[0].clamp(-1.0, 1.0) + 1.0) * 0.5 * self.span
         return out.argmax(1)[0]
 
 
@@ -209,22 +220,23 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
                                  f"{cfg.env.id} {env.observation_space}: a mixture plays one env")
             nets.append(other.net)
         for p, net in zip(paths, nets):
-            if getattr(net, "continuous", False):
-                raise ZenrlError(f"{p}: a continuous-action policy cannot be exported yet (the exported call "
-                                 "returns one action index); evaluate and play it from the checkpoint")
             if isinstance(net, RecurrentQNetwork):
                 raise ZenrlError(f"{p}: a recurrent ({cfg.algo}) policy cannot be exported yet: the exported "
                                  "call takes one observation and would have to carry the LSTM state between calls")
         space = env.observation_space
         dict_obs = isinstance(space, gym.spaces.Dict)
         keys = list(space.spaces) if dict_obs else ["obs"]
+        continuous = bool(getattr(nets[0], "continuous", False))
+        bounds = (env.low, env.high) if continuous and isinstance(env, NormalisedActions) else None
+        if continuous and bounds is None:
+            raise ZenrlError(f"{checkpoint}: a continuous-action policy for an env whose actions are not normalised")
         ex = _example_obs(space)
         example = {k: torch.as_tensor(np.asarray(ex[k])) for k in keys} if dict_obs else torch.as_tensor(np.asarray(ex))
         with torch.no_grad(), warnings.catch_warnings():
             # torch 2.13 deprecates TorchScript in favour of torch.export, but a TorchScript file
             # is what loads with a bare `torch.jit.load` (and from C++ libtorch) on a robot
             warnings.simplefilter("ignore", DeprecationWarning)
-            traced = [torch.jit.trace(ExportedPolicy(net, keys, dict_obs).eval(), (example,), strict=False,
+            traced = [torch.jit.trace(ExportedPolicy(net, keys, dict_obs, bounds).eval(), (example,), strict=False,
                                       check_trace=False) for net in nets]
             if len(traced) == 1:
                 traced = traced[0]
@@ -235,9 +247,14 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
             sub = space.spaces[k] if dict_obs else space
             inputs[k] = {"shape": list(sub.shape), "dtype": str(sub.dtype)}
         meta = {"format": 1, "env": env.spec.id if env.spec else cfg.env.id, "env_kwargs": _jsonable(env_config_for(cfg, env_id, env_kwargs).kwargs),
-                "algo": cfg.algo, "inputs": inputs, "n_actions": int(env.action_space.n),
+                "algo": cfg.algo, "inputs": inputs,
+                "n_actions": int(env.action_space.shape[0]) if continuous else int(env.action_space.n),
                 "call": ("policy({key: tensor}) " if dict_obs else "policy(tensor) ") +
-                        "-> int64 scalar tensor (one observation, no batch dim)"}
+                        ("-> float32[d] tensor, the action in the env's units within action_bounds (the Gaussian "
+                         "policy's mean; one observation, no batch dim)" if continuous
+                         else "-> int64 scalar tensor (one observation, no batch dim)")}
+        if bounds is not None:
+            meta["action_bounds"] = {"low": np.asarray(bounds[0]).tolist(), "high": np.asarray(bounds[1]).tolist()}
         if len(paths) > 1:
             meta["members"] = len(paths)
             meta["call"] += f"; a mixed policy of {len(paths)} members: policy.pick(i) seats member i as a match begins"
