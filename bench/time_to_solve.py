@@ -50,7 +50,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 ROOT = Path(__file__).resolve().parent.parent
 TARGET = 475.0
@@ -148,15 +148,18 @@ def learner_consumption(algo: str, seconds: float, runs_dir: Path, sets: list[st
 
 
 # --------------------------------------------------------------------------------------------
-def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -> dict[str, Any]:
+def sb3_solve_clock(env_id: str, seed: int, eval_every: int, cap_s: float, target: float,
+                    prepare: Callable[[Any, Any], Any] = lambda model, obs: obs,
+                    to_action: Callable[[Any], Any] = lambda a: a) -> Any:
+    """An SB3 callback that clocks training from the first env step, pauses the clock while it
+    plays ``EVAL_EPISODES`` greedy (``deterministic=True``) episodes of ``env_id`` every
+    ``eval_every`` env steps (on zenrl's evaluation seeds: seed + 1,000,000 + 10 * round + i),
+    and stops training once their mean reaches ``target`` (``solve_s``) or the clock ``cap_s``.
+    ``prepare(model, obs)``: the observation the model acts on (e.g. normalised);
+    ``to_action(a)``: the action the env takes."""
     import gymnasium as gym
     import numpy as np
-    import torch
-    from stable_baselines3 import A2C, DQN
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.env_util import make_vec_env
-
-    torch.set_num_threads(threads)
 
     class SolveClock(BaseCallback):
         """Clock from the first env step, paused while evaluating; stops at the target."""
@@ -169,7 +172,7 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
             self.rounds = 0
             self.solve_s: float | None = None
             self.evals: list[tuple[int, float, float]] = []
-            self.eval_env = gym.make("CartPole-v1")
+            self.eval_env = gym.make(env_id)
 
         def clock(self) -> float:
             return 0.0 if self.t_start is None else time.perf_counter() - self.t_start - self.paused
@@ -184,8 +187,8 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
                 obs, _ = self.eval_env.reset(seed=seed + EVAL_SEED_OFFSET + EVAL_EPISODES * self.rounds + i)
                 done, ret = False, 0.0
                 while not done:
-                    a, _ = self.model.predict(obs, deterministic=True)
-                    obs, r, term, trunc, _ = self.eval_env.step(int(a))
+                    a, _ = self.model.predict(prepare(self.model, obs), deterministic=True)
+                    obs, r, term, trunc, _ = self.eval_env.step(to_action(a))
                     ret += float(r)
                     done = term or trunc
                 rets.append(ret)
@@ -201,12 +204,22 @@ def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -
                 m = self._evaluate()
                 self.paused += time.perf_counter() - t0
                 self.evals.append((self.num_timesteps, round(self.clock(), 2), m))
-                if m >= TARGET:
+                if m >= target:
                     self.solve_s = self.clock()
                     return False
             return self.clock() < cap_s
 
-    cb = SolveClock()
+    return SolveClock()
+
+
+def run_sb3(algo: str, seed: int, cap_s: float, eval_every: int, threads: int) -> dict[str, Any]:
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import A2C, DQN
+    from stable_baselines3.common.env_util import make_vec_env
+
+    torch.set_num_threads(threads)
+    cb = sb3_solve_clock("CartPole-v1", seed, eval_every, cap_s, TARGET, to_action=int)
     if algo == "apex":  # the other algorithms compare with A2C
         hp = {k: v for k, v in ZOO_DQN.items() if k not in ("n_timesteps", "policy")}
         env = gym.make("CartPole-v1")
@@ -237,67 +250,20 @@ ZOO_PPO_PENDULUM = {"n_timesteps": 100_000, "policy": "MlpPolicy", "normalize": 
 
 def run_sb3_ppo_pendulum(seed: int, cap_s: float, eval_every: int, threads: int) -> dict[str, Any]:
     """SB3 PPO with the zoo's Pendulum-v1 hyper-parameters (up to 4x its 100 k steps, or
-    ``cap_s``); the clock starts at the first env step and pauses while 10 greedy episodes
-    (observations normalised with the training statistics) are played every ``eval_every`` env
-    steps, on zenrl's evaluation seeds."""
-    import gymnasium as gym
-    import numpy as np
+    ``cap_s``), clocked by :func:`sb3_solve_clock` (greedy episodes on observations normalised
+    with the training statistics)."""
     import torch
     from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(threads)
     hp = ZOO_PPO_PENDULUM
-
-    class SolveClock(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.t_start: float | None = None
-            self.paused = 0.0
-            self.next_eval = eval_every
-            self.rounds = 0
-            self.solve_s: float | None = None
-            self.evals: list[tuple[int, float, float]] = []
-            self.eval_env = gym.make("Pendulum-v1")
-
-        def clock(self) -> float:
-            return 0.0 if self.t_start is None else time.perf_counter() - self.t_start - self.paused
-
-        def _evaluate(self) -> float:
-            norm = self.model.get_env()
-            rets = []
-            for i in range(EVAL_EPISODES):
-                obs, _ = self.eval_env.reset(seed=seed + EVAL_SEED_OFFSET + EVAL_EPISODES * self.rounds + i)
-                done, ret = False, 0.0
-                while not done:
-                    a, _ = self.model.predict(norm.normalize_obs(obs), deterministic=True)
-                    obs, r, term, trunc, _ = self.eval_env.step(a)
-                    ret += float(r)
-                    done = term or trunc
-                rets.append(ret)
-            self.rounds += 1
-            return float(np.mean(rets))
-
-        def _on_step(self) -> bool:
-            if self.t_start is None:
-                self.t_start = time.perf_counter()
-            if self.num_timesteps >= self.next_eval:
-                self.next_eval += eval_every
-                t0 = time.perf_counter()
-                m = self._evaluate()
-                self.paused += time.perf_counter() - t0
-                self.evals.append((self.num_timesteps, round(self.clock(), 2), m))
-                if m >= PENDULUM_TARGET:
-                    self.solve_s = self.clock()
-                    return False
-            return self.clock() < cap_s
-
     env = VecNormalize(make_vec_env("Pendulum-v1", n_envs=hp["n_envs"], seed=seed), gamma=hp["gamma"])
     kw = {k: v for k, v in hp.items() if k not in ("n_timesteps", "policy", "normalize", "n_envs")}
     model = PPO(hp["policy"], env, seed=seed, device="cpu", verbose=0, **kw)
-    cb = SolveClock()
+    cb = sb3_solve_clock("Pendulum-v1", seed, eval_every, cap_s, PENDULUM_TARGET,
+                         prepare=lambda m, obs: m.get_env().normalize_obs(obs))
     model.learn(total_timesteps=4 * hp["n_timesteps"], callback=cb)
     clock = cb.clock()
     out = {"seed": seed, "solved": cb.solve_s is not None, "solve_s": cb.solve_s, "env_steps": int(model.num_timesteps),
