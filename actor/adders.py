@@ -211,8 +211,8 @@ class UnrollsToLearner:
         """The E unrolls of T recorded batched steps ``(obs, actions, logp, result)``."""
         E = len(steps[0][1])
         obs = {k: np.stack([o[k] for o, _, _, _ in steps] + [steps[-1][3].obs[k]]) for k in steps[0][0]}  # [T+1, E, ...]
-        # int64[T, E], or float32[T, E, d] for continuous actions
-        act = np.stack([np.asarray(a, np.float32 if np.asarray(a).dtype.kind == "f" else np.int64) for _, a, _, _ in steps])
+        act = np.stack([a for _, a, _, _ in steps])  # int64[T, E], or float32[T, E, d] for continuous actions
+        act = act.astype(np.float32 if act.dtype.kind == "f" else np.int64, copy=False)
         logp = np.stack([np.asarray(lp, np.float32) for _, _, lp, _ in steps])
         rew = np.stack([np.asarray(r.rewards, np.float32) for _, _, _, r in steps])
         term = np.stack([r.terminated for _, _, _, r in steps])

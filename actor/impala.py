@@ -33,7 +33,7 @@ from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, FirstWeights, match_opponents
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
-from zenrl.common.networks import ActorCritic, obs_spec, policy_actions, set_compute_threads
+from zenrl.common.networks import ActorCritic, action_size, obs_spec, set_compute_threads
 from zenrl.common.specs import ArraySpec
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ class ImpalaActor(ActorWorker):
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
         envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
-        n_actions = policy_actions(envs.single_action_space)
+        n_actions = action_size(envs.single_action_space, cfg.algo)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot,
                                       lambda: ActorCritic(spec, n_actions, cfg.network))

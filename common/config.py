@@ -52,7 +52,7 @@ class NetworkConfig(_Section):
     conv: bool = Field(True, description="Use the Nature-DQN conv torso for uint8 image observations.")
     activation: Literal["relu", "tanh"] = Field("relu", description="Activation of the hidden MLP layers.")
     shared_torso: bool = Field(True, description="A3C: policy and value share the MLP torso; false gives each its own MLP on the shared encoder (Stable-Baselines3's default actor-critic).")
-    log_std_init: float = Field(0.0, ge=-5.0, le=2.0, description="IMPALA with continuous (Box) actions: the Gaussian policy's initial log standard deviation, in actions normalised to [-1, 1] (0: a standard deviation of half the action range).")
+    log_std_init: float = Field(0.0, ge=-5.0, le=2.0, description="IMPALA and A3C with continuous (Box) actions: the Gaussian policy's initial log standard deviation, in actions normalised to [-1, 1] (0: a standard deviation of half the action range).")
     orthogonal_init: bool = Field(True, description="A3C: orthogonal initialisation of the actor-critic's linear layers (gain sqrt(2) hidden, 0.01 policy head, 1 value head; zero biases), the A2C/A3C convention that starts from a near-uniform policy; false keeps PyTorch's default init.")
 
     @model_validator(mode="after")

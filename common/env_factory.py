@@ -47,11 +47,9 @@ class NormalisedActions(gym.ActionWrapper):
         inner = env.action_space
         #: float64[d]: the env's own bounds, which [-1, 1] maps onto
         self.low, self.high = inner.low.astype(np.float64), inner.high.astype(np.float64)
-        self._low = self.low
-        self._span = self.high - self.low
         self._dtype = inner.dtype
         self.action_space = gym.spaces.Box(-1.0, 1.0, inner.shape, np.float32)
 
     def action(self, action: np.ndarray) -> np.ndarray:
         a = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
-        return (self._low + (a + 1.0) * 0.5 * self._span).astype(self._dtype)
+        return (self.low + (a + 1.0) * 0.5 * (self.high - self.low)).astype(self._dtype)

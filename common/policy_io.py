@@ -29,7 +29,7 @@ import torch
 
 from zenrl.common.checkpoints import TrainingState, read_checkpoint
 from zenrl.common.errors import CheckpointError, ZenrlError
-from zenrl.common.networks import ActorCritic, action_size, flat_obs, num_actions, obs_spec, sample_categorical
+from zenrl.common.networks import ActorCritic, action_size, flat_obs, obs_spec, sample_categorical
 from zenrl.common.recurrent import RecurrentQNetwork
 
 log = logging.getLogger(__name__)
@@ -166,8 +166,7 @@ def load_policy(path: str | os.PathLike[str], observation_space: gym.Space, acti
     """Checkpoint file -> :class:`GreedyPolicy` for an env with these (single) spaces."""
     state = read_checkpoint(path)
     net = build_network(state, observation_space, action_space)
-    return GreedyPolicy(net, int(net.policy.out_features) if isinstance(net, ActorCritic) else num_actions(action_space),
-                        epsilon, seed, name=Path(path).name)
+    return GreedyPolicy(net, action_size(action_space, state.algo), epsilon, seed, name=Path(path).name)
 
 
 # --------------------------------------------------------------------------------------------
