@@ -63,8 +63,6 @@ class UnrollChecker:
 
     @classmethod
     def from_spaces(cls, observation_space: Any, action_space: Any, max_abs_reward: float, **kw: Any) -> "UnrollChecker":
-        import gymnasium as gym
-
         n = policy_actions(action_space)  # Discrete, or a 1-D Box with finite bounds; ValueError otherwise
         return cls(obs_rules_from_space(observation_space), int(n), max_abs_reward, continuous=is_continuous(n), **kw)
 
