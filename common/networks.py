@@ -160,6 +160,20 @@ class MLPEncoder(nn.Module):
         return x.reshape(x.shape[0], -1).float()
 
 
+class OneHotEncoder(nn.Module):
+    """int64[B] category indices of a ``Discrete(n, start)`` observation -> float[B, n] one-hot
+    (as SB3 and RLlib feed such observations: an index is a name, not a quantity). Indices
+    outside the space are clamped into it (the replay and learners refuse them before)."""
+
+    def __init__(self, start: int, n: int) -> None:
+        super().__init__()
+        self.start, self.out_dim = int(start), int(n)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        i = (x.reshape(x.shape[0]).long() - self.start).clamp(0, self.out_dim - 1)
+        return nn.functional.one_hot(i, self.out_dim).float()
+
+
 class ConvEncoder(nn.Module):
     """Nature-DQN conv torso. uint8[B, H, W, C] -> float[B, F]; scaled by 1/255 on the device.
     A shape ``(k, H, W)`` with ``k <= 4 < W`` is a stack of k frames on the first axis
@@ -193,7 +207,9 @@ class ObsEncoder(nn.Module):
         encs = {}
         for name in self.names:
             s = spec[name]
-            if conv and s.dtype == "uint8" and len(s.shape) == 3:
+            if s.categories is not None:
+                encs[name.replace("/", "__")] = OneHotEncoder(*s.categories)
+            elif conv and s.dtype == "uint8" and len(s.shape) == 3:
                 encs[name.replace("/", "__")] = ConvEncoder(s.shape)
             else:
                 encs[name.replace("/", "__")] = MLPEncoder(s.shape)
@@ -273,6 +289,9 @@ class NumpyQ:
 
     def __init__(self, net: "QNetwork | ActorCritic") -> None:
         self.names = list(net.encoder.names)
+        #: per field, the (start, n) of a one-hot encoded one (:class:`OneHotEncoder`), else None
+        self.one_hot = [(e.start, e.out_dim) if isinstance(e, OneHotEncoder) else None
+                        for e in (net.encoder.encoders[k] for k in net.encoder._keys)]
         self.act = np.tanh if isinstance(net.trunk[1], nn.Tanh) else None
         self.dueling = isinstance(net, QNetwork) and net.dueling
         #: a Gaussian actor-critic's mean is the tanh of its policy head
@@ -281,7 +300,8 @@ class NumpyQ:
 
     @staticmethod
     def of(net: nn.Module) -> "NumpyQ | None":
-        if not isinstance(net, (QNetwork, ActorCritic)) or not all(isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
+        if not isinstance(net, (QNetwork, ActorCritic)) or not all(isinstance(e, (MLPEncoder, OneHotEncoder))
+                                                                    for e in net.encoder.encoders.values()):
             return None
         return NumpyQ(net)
 
@@ -300,7 +320,8 @@ class NumpyQ:
         self.head = (np.ascontiguousarray(w, np.float32), b.astype(np.float32))
 
     def __call__(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
-        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) for n in self.names]
+        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) if oh is None else _one_hot(flat[n], *oh)
+                 for n, oh in zip(self.names, self.one_hot)]
         h = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         for w, b in self.layers:
             h = h @ w
@@ -315,6 +336,14 @@ class NumpyQ:
         if self.squash:
             np.tanh(q, out=q)
         return q
+
+
+def _one_hot(x: np.ndarray, start: int, n: int) -> np.ndarray:
+    """int[B] indices -> float32[B, n], as :class:`OneHotEncoder`."""
+    i = np.clip(np.asarray(x, np.int64).reshape(-1) - start, 0, n - 1)
+    out = np.zeros((i.shape[0], n), np.float32)
+    out[np.arange(i.shape[0]), i] = 1.0
+    return out
 
 
 class ActorCritic(nn.Module):

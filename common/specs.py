@@ -9,7 +9,7 @@ mappings; :func:`flatten` and :func:`unflatten` convert between the two forms.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
@@ -22,13 +22,21 @@ ALLOWED_DTYPES = frozenset(
 
 SEP = "/"
 
+#: Largest ``Discrete`` observation the networks one-hot encode (its first layer holds n x hidden
+#: weights); a larger one reaches them as its index, a number.
+MAX_CATEGORIES = 4096
+
 
 @dataclass(frozen=True)
 class ArraySpec:
-    """Shape and dtype of one field of ONE item (no batch dimension)."""
+    """Shape and dtype of one field of ONE item (no batch dimension). ``categories``: for an
+    observation from a ``Discrete(n, start)`` space, ``(start, n)``: the value names one of n
+    categories (the networks one-hot encode it); it says nothing of the storage, so two specs
+    that differ only in it compare equal."""
 
     shape: tuple[int, ...]
     dtype: str
+    categories: tuple[int, int] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         dt = np.dtype(self.dtype).name
@@ -74,7 +82,8 @@ class ObsField:
 def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
     """The flat observation fields of a gymnasium space (Box, Discrete, or a Dict of those):
     ``{"obs": ...}`` or ``{"obs/<key>": ...}``. The one rule for the dtypes on the wire: a uint8
-    Box stays uint8 (images), any other Box is float32, a Discrete is int64. The networks' input
+    Box stays uint8 (images), any other Box is float32, a Discrete is int64 (its index, with
+    ``categories`` set: the networks one-hot encode it). The networks' input
     spec and the replay's checks are both built from this."""
     import gymnasium as gym  # callers that have an env have gymnasium; this module stays importable without
 
@@ -85,7 +94,8 @@ def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
         return out
     if isinstance(space, gym.spaces.Discrete):
         start = int(space.start)
-        return {prefix: ObsField(ArraySpec((), "int64"), np.array(start, np.float64),
+        cats = (start, int(space.n)) if int(space.n) <= MAX_CATEGORIES else None
+        return {prefix: ObsField(ArraySpec((), "int64", cats), np.array(start, np.float64),
                                  np.array(start + int(space.n) - 1, np.float64))}
     if isinstance(space, gym.spaces.Box):
         dtype = "uint8" if space.dtype == np.uint8 else "float32"
