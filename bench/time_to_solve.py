@@ -98,11 +98,12 @@ def run_zenrl(algo: str, seed: int, cap_s: float, runs_dir: Path, sets: list[str
            "--set", f"max_wall_s={cap_s}", "--set", f"actor.episode_report_s={report_s}"]
     for kv in sets or []:
         cmd += ["--set", kv]
-    t0 = time.monotonic()
+    t0, started = time.monotonic(), time.time()
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=cap_s + 300)
     summary = runs_dir / run_id / "summary.json"
-    if not summary.is_file():
-        raise RuntimeError(f"zenrl run (seed {seed}) exited {p.returncode} without a summary: {p.stderr[-2000:]}")
+    # a summary older than this run is another run's (zenrl refuses a run folder in use)
+    if not summary.is_file() or summary.stat().st_mtime < started:
+        raise RuntimeError(f"zenrl run (seed {seed}) exited {p.returncode} without a summary of its own: {p.stderr[-2000:]}")
     s = json.loads(summary.read_text())
     evals = s.get("evals") or []
     last = next((e for e in reversed(evals) if e.get("since_first_step")), None)

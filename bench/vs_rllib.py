@@ -148,7 +148,9 @@ def main() -> None:
             rl, zen = [], []
             for s in range(args.seeds):
                 rl.append(run_rllib(args.rllib_python, ralgo, s, args.cap_s))
-                zen.append(tts.run_zenrl(zalgo, s, args.cap_s, Path(tmp), args.set))
+                # a folder per pair: zenrl IMPALA runs against two RLlib algorithms, and a run id
+                # met again would resume that run
+                zen.append(tts.run_zenrl(zalgo, s, args.cap_s, Path(tmp) / ralgo, args.set))
             r_med = tts.median_or_inf([r["solve_s"] for r in rl])
             z_med = tts.median_or_inf([r["solve_s"] for r in zen])
             r_sps = [r["env_steps_per_s"] for r in rl if r["env_steps_per_s"]]
