@@ -53,6 +53,11 @@ def check_resume_compatible(saved_cfg: dict[str, Any], cfg: RunConfig, saved_arc
     if old.env.id != cfg.env.id:
         raise CheckpointError(f"cannot resume: checkpoint trained env.id={old.env.id}, config says {cfg.env.id}")
     if saved_arch != arch:
+        if old.network.model_dump() == cfg.network.model_dump():
+            raise CheckpointError(f"cannot resume: the network differs (checkpoint {saved_arch}, config {arch}) with the "
+                                  "same network settings: the env's spaces give another network (env.kwargs changed, or "
+                                  "the checkpoint is from a zenrl that built it otherwise, e.g. before Discrete "
+                                  "observations were one-hot encoded); start a new run")
         raise CheckpointError(f"cannot resume: the network differs (checkpoint {saved_arch}, config {arch}); "
                               f"network={old.network.model_dump()} was saved, config gives {cfg.network.model_dump()}")
 

@@ -118,8 +118,11 @@ def test_resume_compatibility():
     saved = cfg.model_dump(mode="json")
     arch = "QNetwork-abc"
     check_resume_compatible(saved, more_actors, arch, arch)  # harmless change accepted
-    with pytest.raises(CheckpointError, match="network differs"):
+    # same settings, another network: the env's spaces give it (not the settings, which are equal)
+    with pytest.raises(CheckpointError, match="network differs .* with the same network settings: the env's spaces"):
         check_resume_compatible(saved, cfg, arch, "QNetwork-def")
+    with pytest.raises(CheckpointError, match=r"network differs .*'hidden': \[32, 32\].* was saved, config gives .*'hidden': \[64\]"):
+        check_resume_compatible(saved, load_config(None, ["network.hidden=[64]"], environ={}), arch, "QNetwork-def")
     with pytest.raises(CheckpointError, match="env.id"):
         check_resume_compatible(saved, load_config(None, ["env.id=Acrobot-v1"], environ={}), arch, arch)
 
