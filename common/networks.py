@@ -273,6 +273,35 @@ def set_compute_threads(n: int) -> None:
     threadpool_limits(limits=n, user_api="blas")
 
 
+class NumpyInputs:
+    """What an MLP-only :class:`ObsEncoder` gives, in numpy, for the actors' numpy forwards:
+    flat observations ``{name: array[B, ...]}`` -> float32[B, F], each field flattened, or one-hot
+    encoded as :class:`OneHotEncoder` does, concatenated in the encoder's order."""
+
+    def __init__(self, encoder: ObsEncoder) -> None:
+        #: (field, (start, n) of a one-hot encoded field or None), in the encoder's order
+        self.fields = [(n, (e.start, e.out_dim) if isinstance(e, OneHotEncoder) else None)
+                       for n, e in zip(encoder.names, (encoder.encoders[k] for k in encoder._keys))]
+
+    @staticmethod
+    def supports(encoder: ObsEncoder) -> bool:
+        """Whether every field is flattened or one-hot encoded (no conv encoder)."""
+        return all(isinstance(e, (MLPEncoder, OneHotEncoder)) for e in encoder.encoders.values())
+
+    def __call__(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
+        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) if oh is None else _one_hot(flat[n], *oh)
+                 for n, oh in self.fields]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+
+
+def _one_hot(x: np.ndarray, start: int, n: int) -> np.ndarray:
+    """int[B] indices -> float32[B, n], as :class:`OneHotEncoder`."""
+    i = np.clip(np.asarray(x, np.int64).reshape(-1) - start, 0, n - 1)
+    out = np.zeros((i.shape[0], n), np.float32)
+    out[np.arange(i.shape[0]), i] = 1.0
+    return out
+
+
 class NumpyQ:
     """A numpy copy of an MLP-only :class:`QNetwork` (its Q values) or :class:`ActorCritic` (its
     policy logits; the value MLP is left out) for acting on the CPU: flat observations
@@ -288,10 +317,7 @@ class NumpyQ:
     128] net on 64 observations: 38 -> 31 us)."""
 
     def __init__(self, net: "QNetwork | ActorCritic") -> None:
-        self.names = list(net.encoder.names)
-        #: per field, the (start, n) of a one-hot encoded one (:class:`OneHotEncoder`), else None
-        self.one_hot = [(e.start, e.out_dim) if isinstance(e, OneHotEncoder) else None
-                        for e in (net.encoder.encoders[k] for k in net.encoder._keys)]
+        self.inputs = NumpyInputs(net.encoder)
         self.act = np.tanh if isinstance(net.trunk[1], nn.Tanh) else None
         self.dueling = isinstance(net, QNetwork) and net.dueling
         #: a Gaussian actor-critic's mean is the tanh of its policy head
@@ -300,8 +326,7 @@ class NumpyQ:
 
     @staticmethod
     def of(net: nn.Module) -> "NumpyQ | None":
-        if not isinstance(net, (QNetwork, ActorCritic)) or not all(isinstance(e, (MLPEncoder, OneHotEncoder))
-                                                                    for e in net.encoder.encoders.values()):
+        if not isinstance(net, (QNetwork, ActorCritic)) or not NumpyInputs.supports(net.encoder):
             return None
         return NumpyQ(net)
 
@@ -320,9 +345,7 @@ class NumpyQ:
         self.head = (np.ascontiguousarray(w, np.float32), b.astype(np.float32))
 
     def __call__(self, flat: Mapping[str, np.ndarray]) -> np.ndarray:
-        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) if oh is None else _one_hot(flat[n], *oh)
-                 for n, oh in zip(self.names, self.one_hot)]
-        h = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        h = self.inputs(flat)
         for w, b in self.layers:
             h = h @ w
             h += b
@@ -338,12 +361,6 @@ class NumpyQ:
         return q
 
 
-def _one_hot(x: np.ndarray, start: int, n: int) -> np.ndarray:
-    """int[B] indices -> float32[B, n], as :class:`OneHotEncoder`."""
-    i = np.clip(np.asarray(x, np.int64).reshape(-1) - start, 0, n - 1)
-    out = np.zeros((i.shape[0], n), np.float32)
-    out[np.arange(i.shape[0]), i] = 1.0
-    return out
 
 
 class ActorCritic(nn.Module):

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from zenrl.common.config import NetworkConfig
-from zenrl.common.networks import MLPEncoder, ObsEncoder, mlp
+from zenrl.common.networks import NumpyInputs, ObsEncoder, mlp
 from zenrl.common.specs import ArraySpec
 
 State = tuple[torch.Tensor, torch.Tensor]
@@ -104,14 +104,13 @@ class NumpyRecurrentQ:
     :meth:`load` after the weights change."""
 
     def __init__(self, net: RecurrentQNetwork) -> None:
-        self.names = list(net.encoder.names)
+        self.inputs = NumpyInputs(net.encoder)
         self.relu = isinstance(net.trunk[1], nn.ReLU)
         self.load(net)
 
     @staticmethod
     def of(net: nn.Module) -> "NumpyRecurrentQ | None":
-        if not isinstance(net, RecurrentQNetwork) or not all(
-                isinstance(e, MLPEncoder) for e in net.encoder.encoders.values()):
+        if not isinstance(net, RecurrentQNetwork) or not NumpyInputs.supports(net.encoder):
             return None
         return NumpyRecurrentQ(net)
 
@@ -134,8 +133,7 @@ class NumpyRecurrentQ:
 
     def __call__(self, flat: Mapping[str, np.ndarray], state: tuple[np.ndarray, np.ndarray],
                  reset: np.ndarray | None = None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        parts = [np.asarray(flat[n], np.float32).reshape(len(flat[n]), -1) for n in self.names]
-        x = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        x = self.inputs(flat)
         for w, b in self.layers:
             x = x @ w
             x += b

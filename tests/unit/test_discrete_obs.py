@@ -10,7 +10,7 @@ import torch
 
 from zenrl.common.config import NetworkConfig
 from zenrl.common.networks import ActorCritic, NumpyQ, OneHotEncoder, QNetwork, obs_spec
-from zenrl.common.recurrent import RecurrentQNetwork
+from zenrl.common.recurrent import NumpyRecurrentQ, RecurrentQNetwork
 from zenrl.common.specs import MAX_CATEGORIES, ArraySpec
 
 
@@ -77,6 +77,24 @@ def test_numpy_copy_one_hot_encodes_as_the_network_does(make):
                            fast({"obs/cell": np.array([7]), "obs/x": obs["obs/x"][:1]}))
 
 
-def test_recurrent_network_one_hot_encodes_too():
-    net = RecurrentQNetwork(obs_spec(gym.spaces.Discrete(9)), 2, NetworkConfig(hidden=[8]), 16)
-    assert net.encoder.out_dim == 9
+def test_recurrent_network_and_its_numpy_step_one_hot_encode_too():
+    spec = obs_spec(gym.spaces.Dict({"cell": gym.spaces.Discrete(9), "x": gym.spaces.Box(-1, 1, (2,))}))
+    torch.manual_seed(3)
+    net = RecurrentQNetwork(spec, 3, NetworkConfig(hidden=[8]), 16).eval()
+    assert net.encoder.out_dim == 9 + 2
+    fast = NumpyRecurrentQ.of(net)
+    assert fast is not None
+    rng = np.random.default_rng(2)
+    state = (torch.zeros(6, 16), torch.zeros(6, 16))
+    np_state = (np.zeros((6, 16), np.float32), np.zeros((6, 16), np.float32))
+    for _ in range(3):
+        obs = {"obs/cell": rng.integers(0, 9, size=6), "obs/x": rng.uniform(-1, 1, (6, 2)).astype(np.float32)}
+        with torch.no_grad():
+            q, state = net.step({k: torch.from_numpy(v) for k, v in obs.items()}, state)
+        q_np, np_state = fast(obs, np_state)
+        np.testing.assert_allclose(q_np, q.numpy(), atol=1e-5, rtol=1e-5)
+    # sequences [T, B] of indices, as the learner unrolls them
+    seq = {"obs/cell": torch.randint(0, 9, (4, 6)), "obs/x": torch.rand(4, 6, 2)}
+    with torch.no_grad():
+        q_seq, _ = net(seq, (torch.zeros(6, 16), torch.zeros(6, 16)))
+    assert q_seq.shape == (4, 6, 3) and torch.isfinite(q_seq).all()
