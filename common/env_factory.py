@@ -22,7 +22,52 @@ def make_env(cfg: EnvConfig, render_mode: str | None = None) -> gym.Env:
         env = gym.make(cfg.id, **kw)
     except (gym.error.Error, TypeError, ValueError) as e:
         raise ConfigError(f"env.id={cfg.id!r} with env.kwargs={cfg.kwargs!r} cannot be made: {e}") from None
-    return normalised_actions(env)
+    return normalised_actions(wire_observations(env))
+
+
+def _wire_space(space: gym.Space) -> gym.Space:
+    """The observation space as zenrl ships it (:func:`zenrl.common.specs.obs_fields`'s rule): a
+    uint8 Box stays, any other Box becomes float32 (same bounds), a MultiBinary a float32 Box of
+    0/1, a Discrete stays (its int64 index); a Dict of those, each converted. Other spaces are
+    left to the spec's refusal."""
+    if isinstance(space, gym.spaces.Dict):
+        return gym.spaces.Dict({k: _wire_space(v) for k, v in space.spaces.items()})
+    if isinstance(space, gym.spaces.MultiBinary):
+        return gym.spaces.Box(0.0, 1.0, tuple(space.shape), np.float32)
+    if isinstance(space, gym.spaces.Box) and space.dtype not in (np.uint8, np.float32):
+        return gym.spaces.Box(np.asarray(space.low, np.float64).astype(np.float32),
+                              np.asarray(space.high, np.float64).astype(np.float32), space.shape, np.float32)
+    return space
+
+
+def wire_observations(env: gym.Env) -> gym.Env:
+    """An env whose observations are not all of the dtypes zenrl ships (an int or float64 Box, a
+    MultiBinary) is wrapped in :class:`WireObservations`; the others (float32 and uint8 Boxes,
+    Discrete, the match envs) are left as they are."""
+    space = env.observation_space
+    wire = _wire_space(space)
+    return env if wire == space else WireObservations(env, wire)
+
+
+class WireObservations(gym.ObservationWrapper):
+    """Observations cast to the dtypes of ``wire`` (:func:`_wire_space`): what the actors send,
+    the replay and learners check against the env's spec, and the networks read. Without it, an
+    env with an int64 Box observation had every chunk refused by the replay (``obs_dtype``)."""
+
+    def __init__(self, env: gym.Env, wire: gym.Space) -> None:
+        super().__init__(env)
+        self.observation_space = wire
+
+    def observation(self, obs):
+        return _cast(obs, self.observation_space)
+
+
+def _cast(obs, space: gym.Space):
+    if isinstance(space, gym.spaces.Dict):
+        return {k: _cast(obs[k], sub) for k, sub in space.spaces.items()}
+    if isinstance(space, gym.spaces.Box):
+        return np.asarray(obs, space.dtype)
+    return obs
 
 
 def normalised_actions(env: gym.Env) -> gym.Env:

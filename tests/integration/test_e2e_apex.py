@@ -82,3 +82,27 @@ def test_zenrl_run_learns_a_discrete_observation_env(tmp_path, run_id):
         want = net({"obs": torch.arange(64)}).argmax(1)
         got = torch.stack([program(torch.tensor(s)) for s in range(64)])
     assert torch.equal(got, want)
+
+
+def test_zenrl_run_takes_an_env_with_integer_observations(tmp_path, run_id, monkeypatch):
+    """A user's env, in a module of their own on PYTHONPATH (a copy of
+    tests/integration/custom_envs.py, named by ``module:id``), whose observation is an int64 Box:
+    the actors send it as the float32 the env's spec names, so the replay refuses nothing (before,
+    every chunk was refused as `obs_dtype` and the actors quarantined)."""
+    import shutil
+    from pathlib import Path
+
+    mods = tmp_path / "user_code"
+    mods.mkdir()
+    shutil.copy(Path(__file__).with_name("custom_envs.py"), mods / "user_envs.py")
+    monkeypatch.setenv("PYTHONPATH", str(mods))  # how a user's module reaches every process
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id,
+                                 "env.id=user_envs:IntWalk-v0", "target_return=null",
+                                 "max_updates=300", "max_wall_s=240", "evaluator.interval_s=2", timeout_s=420)
+    assert p.returncode == 0, (p.stderr[-3000:], logs)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("max_updates"), (summary["stop_reason"], logs.get("replay.log"))
+    assert summary["replay"]["rejected_total"] == 0, summary["replay"]
+    assert summary["learner"]["updates"] >= 300
+    assert max(e["mean"] for e in summary["evals"]) == 1.0  # the walk to 9 within 50 steps
+    assert not _leftovers(run_id), _leftovers(run_id)

@@ -1,0 +1,70 @@
+"""Observations reach the wire in the dtypes the env's spec names (``obs_fields``: a uint8 Box
+stays uint8, any other Box is float32, a Discrete is int64): an env with an int64 or float64 Box,
+or a MultiBinary, is wrapped so that what the actors send is what the replay checks against."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from tests.integration import custom_envs  # noqa: F401  (registers IntWalk-v0)
+from zenrl.actor.batch_env import EnvBatch
+from zenrl.common.config import EnvConfig
+from zenrl.common.env_factory import WireObservations, make_env
+from zenrl.common.networks import obs_spec
+
+
+class _MixedEnv(gym.Env):
+    """A Dict of an int32 Box, a float64 Box, a MultiBinary, a Discrete and a uint8 image."""
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Dict({
+            "count": gym.spaces.Box(0, 10, (3,), np.int32), "pos": gym.spaces.Box(-1.0, 1.0, (2,), np.float64),
+            "flags": gym.spaces.MultiBinary(4), "cell": gym.spaces.Discrete(5),
+            "image": gym.spaces.Box(0, 255, (8, 8, 3), np.uint8)})
+        self.action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+if "test/MixedObs-v0" not in gym.registry:
+    gym.register("test/MixedObs-v0", entry_point=_MixedEnv, max_episode_steps=10)
+
+
+@pytest.mark.parametrize("env_id", ["IntWalk-v0", "test/MixedObs-v0"])
+def test_what_the_actors_stack_has_the_dtypes_of_the_spec(env_id):
+    batch = EnvBatch(EnvConfig(id=env_id), 3, seed=0)
+    spec = obs_spec(batch.single_observation_space)  # what the replay's checks hold chunks to
+    for obs in (batch.reset(), batch.step(np.array([1, 0, 1])).next_obs):
+        assert {k: v.dtype.name for k, v in obs.items()} == {k: s.dtype for k, s in spec.items()}
+        assert {k: v.shape[1:] for k, v in obs.items()} == {k: s.shape for k, s in spec.items()}
+
+
+def test_the_wire_space_keeps_the_bounds_and_the_kinds():
+    env = make_env(EnvConfig(id="test/MixedObs-v0"))
+    assert isinstance(env, WireObservations)
+    sp = env.observation_space
+    assert sp["count"] == gym.spaces.Box(0, 10, (3,), np.float32)
+    assert sp["pos"] == gym.spaces.Box(-1, 1, (2,), np.float32)
+    assert sp["flags"] == gym.spaces.Box(0, 1, (4,), np.float32)
+    assert sp["cell"] == gym.spaces.Discrete(5) and sp["image"] == gym.spaces.Box(0, 255, (8, 8, 3), np.uint8)
+    assert obs_spec(sp)["obs/cell"].categories == (0, 5)
+    obs, _ = env.reset(seed=1)
+    assert obs["count"].dtype == np.float32 and set(np.unique(obs["flags"])) <= {0.0, 1.0}
+    assert sp.contains(obs)
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "FrozenLake-v1", "zenrl/StatelessCartPole-v1"])
+def test_envs_already_in_the_wire_dtypes_are_not_wrapped(env_id):
+    env = make_env(EnvConfig(id=env_id))
+    assert not isinstance(env, WireObservations)
+    w = env
+    while hasattr(w, "env"):
+        assert not isinstance(w, WireObservations)
+        w = w.env
