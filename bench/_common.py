@@ -81,6 +81,23 @@ class Procs:
                 p.wait()
 
 
+def other_python_missing(python: str, imports: str, what: str, env_var: str, flag: str) -> str | None:
+    """Why the Python of another virtual environment (a baseline framework's, e.g. Sample
+    Factory's or RLlib's) cannot run ``import <imports>``; None when it can."""
+    if not os.path.isfile(python) or not os.access(python, os.X_OK):
+        return f"no {what} python at {python} (set {flag} or {env_var})"
+    p = subprocess.run([python, "-c", f"import {imports}"], capture_output=True, text=True, timeout=300)
+    if p.returncode != 0:
+        return f"{python} cannot import {what}: {(p.stderr.strip().splitlines() or ['?'])[-1]}"
+    return None
+
+
+def print_skipped(bench: str, why: str) -> None:
+    """A bench that cannot run here: one line saying why, and the JSON result saying so."""
+    print(f"skipped: {why}", file=sys.stderr)
+    print(json.dumps({"bench": bench, "skipped": why}))
+
+
 def machine_info(t_start: float) -> dict[str, Any]:
     """Fields every benchmark reports about the run (``t_start``: ``time.perf_counter()``)."""
     return {"python": platform.python_version(), "cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0],

@@ -50,22 +50,13 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import time_to_solve as tts  # noqa: E402  (the zenrl half is time_to_solve's)
+from _common import other_python_missing, print_skipped  # noqa: E402
 
 RLLIB_TARGET = 450.0
 DEFAULT_RLLIB_PYTHON = "/work/rlvenv/bin/python"
 DRIVER = Path(__file__).resolve().parent / "rllib_cartpole.py"
 #: RLlib algorithm -> the zenrl algorithm measured against it
 PAIRS = {"dqn": "apex", "appo": "impala", "impala": "impala"}
-
-
-def rllib_missing(python: str) -> str | None:
-    """Why RLlib cannot run from ``python`` (None: it can)."""
-    if not os.path.isfile(python) or not os.access(python, os.X_OK):
-        return f"no RLlib python at {python} (set --rllib-python or ZENRL_RLLIB_PYTHON)"
-    p = subprocess.run([python, "-c", "import ray.rllib, torch"], capture_output=True, text=True, timeout=300)
-    if p.returncode != 0:
-        return f"{python} cannot import ray.rllib: {(p.stderr.strip().splitlines() or ['?'])[-1]}"
-    return None
 
 
 def rllib_version(python: str) -> str:
@@ -134,10 +125,9 @@ def main() -> None:
     pairs = [p.strip() for p in args.rllib.split(",") if p.strip()]
     if not pairs or any(p not in PAIRS for p in pairs):
         ap.error(f"--rllib takes {', '.join(PAIRS)}; got {args.rllib!r}")
-    why = rllib_missing(args.rllib_python)
+    why = other_python_missing(args.rllib_python, "ray.rllib, torch", "RLlib", "ZENRL_RLLIB_PYTHON", "--rllib-python")
     if why is not None:
-        print(f"skipped: {why}", file=sys.stderr)
-        print(json.dumps({"bench": "vs_rllib", "skipped": why}))
+        print_skipped("vs_rllib", why)
         return
     load_start = os.getloadavg()
     result: dict[str, Any] = {"bench": "vs_rllib", "env": "CartPole-v1", "seeds": args.seeds, "cap_s": args.cap_s,

@@ -47,6 +47,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import time_to_solve as tts  # noqa: E402  (the zenrl half is time_to_solve's)
+from _common import other_python_missing, print_skipped  # noqa: E402
 
 SF_TARGET = 450.0
 DEFAULT_SF_PYTHON = "/work/sfvenv/bin/python"
@@ -58,17 +59,6 @@ SF_MACHINE_ARGS = ["--num_workers=2", "--device=cpu"]
 _STAMP = re.compile(r"\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})\]")
 _FRAMES = re.compile(r"Fps is \(10 sec: ([\d.na]+).*Total num frames: (\d+)")
 _REWARD = re.compile(r"Avg episode reward: \[\(0, '(-?[\d.]+)'\)\]")
-
-
-def sf_missing(python: str) -> str | None:
-    """Why Sample Factory cannot run from ``python`` (None: it can)."""
-    if not os.path.isfile(python) or not os.access(python, os.X_OK):
-        return f"no Sample Factory python at {python} (set --sf-python or ZENRL_SF_PYTHON)"
-    p = subprocess.run([python, "-c", "import sample_factory, sf_examples.train_gym_env"], capture_output=True,
-                       text=True, timeout=120)
-    if p.returncode != 0:
-        return f"{python} cannot import sample_factory: {(p.stderr.strip().splitlines() or ['?'])[-1]}"
-    return None
 
 
 def run_sf(python: str, seed: int, cap_s: float, train_dir: Path) -> dict[str, Any]:
@@ -151,10 +141,10 @@ def main() -> None:
                     help="seconds of zenrl's learner-consumption run (its start-up included: keep it well above that)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="zenrl config override")
     args = ap.parse_args()
-    why = sf_missing(args.sf_python)
+    why = other_python_missing(args.sf_python, "sample_factory, sf_examples.train_gym_env", "Sample Factory",
+                               "ZENRL_SF_PYTHON", "--sf-python")
     if why is not None:
-        print(f"skipped: {why}", file=sys.stderr)
-        print(json.dumps({"bench": "vs_sample_factory", "skipped": why}))
+        print_skipped("vs_sample_factory", why)
         return
     load_start = os.getloadavg()
     sf, zen = [], []
