@@ -135,15 +135,17 @@ def test_league_service_with_real_matches(tmp_path, router, run_id, procs):
         # PFSP: main wins every match against cheese (published as a third actor would: it asks
         # for assignments and reports a win for each cheese one), so cheese must be drawn rarely;
         # the empirical frequencies follow the league's distribution
+        # (each cheese assignment answered as it comes: an actor id holds at most
+        # league.open_tickets_per_actor unanswered, the oldest dropped, and where main beat
+        # cheese in the real matches above it takes hundreds of assignments to draw 40 of it)
         ask = P.OpponentRequest("main", "a9").encode()
-        cheese = []
-        while len(cheese) < 40:
+        cheese = 0
+        while cheese < 40:
             rep = P.OpponentReply.decode(node.query(P.LeagueKeys(run_id).opponent, ask, 5.0))
             if rep.opponent == "cheese":
-                cheese.append(rep.ticket)
-        for ticket in cheese:
-            node.put(P.LeagueKeys(run_id).results("a9"),
-                     P.MatchResult("a9", "main", 0, 7, "cheese", -1, 1, ticket=ticket).encode())
+                cheese += 1
+                node.put(P.LeagueKeys(run_id).results("a9"),
+                         P.MatchResult("a9", "main", 0, 7, "cheese", -1, 1, ticket=rep.ticket).encode())
         wait_until(lambda: sum(wdl(table(node, run_id), "main", "cheese")) >= sum(wdl(after, "main", "cheese")) + 40,
                    30, "the 40 results counted")
         t = table(node, run_id)
