@@ -7,6 +7,7 @@ import numpy as np
 
 from zenrl.common.config import EnvConfig
 from zenrl.common.errors import ConfigError
+from zenrl.common.specs import box_wire_dtype
 
 
 def make_env(cfg: EnvConfig, render_mode: str | None = None) -> gym.Env:
@@ -34,7 +35,7 @@ def _wire_space(space: gym.Space) -> gym.Space:
         return gym.spaces.Dict({k: _wire_space(v) for k, v in space.spaces.items()})
     if isinstance(space, gym.spaces.MultiBinary):
         return gym.spaces.Box(0.0, 1.0, tuple(space.shape), np.float32)
-    if isinstance(space, gym.spaces.Box) and space.dtype not in (np.uint8, np.float32):
+    if isinstance(space, gym.spaces.Box) and space.dtype != box_wire_dtype(space.dtype):
         return gym.spaces.Box(np.asarray(space.low, np.float64).astype(np.float32),
                               np.asarray(space.high, np.float64).astype(np.float32), space.shape, np.float32)
     return space

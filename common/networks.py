@@ -217,6 +217,10 @@ class ObsEncoder(nn.Module):
         self._keys = [n.replace("/", "__") for n in self.names]
         self.out_dim = sum(e.out_dim for e in self.encoders.values())
 
+    def fields(self) -> list[tuple[str, nn.Module]]:
+        """``(field name, its encoder)`` in the order their outputs are concatenated."""
+        return [(n, self.encoders[k]) for n, k in zip(self.names, self._keys)]
+
     def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         if len(self.names) == 1:
             return self.encoders[self._keys[0]](obs[self.names[0]])
@@ -280,8 +284,7 @@ class NumpyInputs:
 
     def __init__(self, encoder: ObsEncoder) -> None:
         #: (field, (start, n) of a one-hot encoded field or None), in the encoder's order
-        self.fields = [(n, (e.start, e.out_dim) if isinstance(e, OneHotEncoder) else None)
-                       for n, e in zip(encoder.names, (encoder.encoders[k] for k in encoder._keys))]
+        self.fields = [(n, (e.start, e.out_dim) if isinstance(e, OneHotEncoder) else None) for n, e in encoder.fields()]
 
     @staticmethod
     def supports(encoder: ObsEncoder) -> bool:

@@ -79,6 +79,12 @@ class ObsField:
     high: np.ndarray
 
 
+def box_wire_dtype(dtype: Any) -> str:
+    """The dtype a ``Box`` observation of ``dtype`` travels and is stored in: uint8 stays (images),
+    any other becomes float32."""
+    return "uint8" if np.dtype(dtype) == np.uint8 else "float32"
+
+
 def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
     """The flat observation fields of a gymnasium space (Box, Discrete, or a Dict of those):
     ``{"obs": ...}`` or ``{"obs/<key>": ...}``. The one rule for the dtypes on the wire: a uint8
@@ -98,7 +104,7 @@ def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
         return {prefix: ObsField(ArraySpec((), "int64", cats), np.array(start, np.float64),
                                  np.array(start + int(space.n) - 1, np.float64))}
     if isinstance(space, gym.spaces.Box):
-        dtype = "uint8" if space.dtype == np.uint8 else "float32"
+        dtype = box_wire_dtype(space.dtype)
         low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape).copy()
         high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape).copy()
         return {prefix: ObsField(ArraySpec(tuple(space.shape), dtype), low, high)}

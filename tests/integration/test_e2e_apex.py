@@ -54,7 +54,6 @@ def test_zenrl_run_learns_a_discrete_observation_env(tmp_path, run_id):
 
     from tests.conftest import ROOT
     from zenrl.common.checkpoints import read_checkpoint
-    from zenrl.common.config import NetworkConfig
     from zenrl.common.networks import QNetwork
     from zenrl.common.specs import ArraySpec
 
@@ -76,7 +75,7 @@ def test_zenrl_run_learns_a_discrete_observation_env(tmp_path, run_id):
         program = torch.jit.load(str(out), _extra_files=extra)
     assert json.loads(extra["zenrl.json"])["inputs"] == {"obs": {"shape": [], "dtype": "int64"}}
     state = read_checkpoint(sorted((run_dir / "checkpoints").glob("ckpt-*.pt"))[-1])
-    net = QNetwork({"obs": ArraySpec((), "int64", (0, 64))}, 4, NetworkConfig(hidden=[128, 128], dueling=True))
+    net = QNetwork({"obs": ArraySpec((), "int64", (0, 64))}, 4, state.run_config().network)
     net.load_state_dict(state.policy_state())
     with torch.no_grad():
         want = net({"obs": torch.arange(64)}).argmax(1)
