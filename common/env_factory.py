@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 
@@ -72,15 +74,34 @@ def _cast(obs, space: gym.Space):
 
 
 def normalised_actions(env: gym.Env) -> gym.Env:
-    """A 1-D ``Box`` action space with finite bounds becomes [-1, 1]^d (:class:`NormalisedActions`).
+    """A 1-D ``Box`` action space with finite bounds becomes [-1, 1]^d (:class:`NormalisedActions`);
+    a ``Discrete(n, start)`` with ``start != 0`` becomes ``Discrete(n)`` (:class:`ShiftedActions`).
     Other spaces, and Box spaces that cannot be rescaled (the algorithm refuses them by name), are
     left as they are."""
     space = env.action_space
+    if isinstance(space, gym.spaces.Discrete):
+        return ShiftedActions(env) if int(space.start) != 0 else env
     if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
         return env
     if not (np.isfinite(space.low).all() and np.isfinite(space.high).all()) or not (space.high > space.low).all():
         return env
     return NormalisedActions(env)
+
+
+class ShiftedActions(gym.ActionWrapper):
+    """A ``Discrete(n, start)`` action space seen as ``Discrete(n)``: the networks, the replay's
+    checks and the wire all use the index 0..n-1 (a Q-network's row, a softmax's entry), and the
+    env gets ``start + index``. Without it an env with ``Discrete(3, start=-1)`` (left, none,
+    right) was given 0..2: a shifted problem, or an env that checks its actions failing on 2."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        #: the env's first action: index i is the env's action ``start + i``
+        self.start = int(env.action_space.start)
+        self.action_space = gym.spaces.Discrete(int(env.action_space.n))
+
+    def action(self, action: Any) -> np.int64:
+        return np.int64(self.start + int(action))
 
 
 class NormalisedActions(gym.ActionWrapper):

@@ -187,7 +187,8 @@ class ExportedPlayer:
     as TorchScript plus its ``zenrl.json`` description (env id and kwargs, input shapes and dtypes,
     number of actions). ``meta`` is that description. A continuous policy's program returns the
     action in the env's units (``action_bounds``); the player gives it in the [-1, 1] units of
-    zenrl's envs (float32[d]).
+    zenrl's envs (float32[d]). A discrete program returns the env's action (``action_start`` + the
+    index, for a ``Discrete(n, start)`` env); the player gives the index, as zenrl's envs take it.
 
     A TorchScript file is a program (its graph runs when called): load only files you trust, such
     as the ones in ``models/``. Checkpoints (``torch.load(weights_only=True)``) carry weights only.
@@ -210,6 +211,8 @@ class ExportedPlayer:
         #: continuous actions: the env's (low, high) the program's output lies within; None: an index
         b = self.meta.get("action_bounds")
         self.bounds = (np.asarray(b["low"], np.float64), np.asarray(b["high"], np.float64)) if isinstance(b, dict) else None
+        #: a Discrete(n, start) env's start: the program returns start + index
+        self.start = int(self.meta.get("action_start", 0))
         self.keys = list(self.meta["inputs"])
         self.dict_obs = self.keys != ["obs"]
         #: a mixed policy's member count (``zenrl export --member``); 1 for one network
@@ -274,7 +277,7 @@ class ExportedPlayer:
         if self.bounds is not None:  # the env's units back to the [-1, 1] zenrl's envs take
             low, high = self.bounds
             return (2.0 * (out.double().numpy() - low) / (high - low) - 1.0).astype(np.float32)
-        return int(out)
+        return int(out) - self.start
 
 
 def initial_q_weights(path: str | os.PathLike[str], exported: bool) -> dict[str, torch.Tensor]:

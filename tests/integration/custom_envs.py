@@ -2,7 +2,9 @@
 ``tests.integration.custom_envs:<id>``: gymnasium imports this module, which registers them).
 
 * ``IntWalk-v0``: a walk on 0..9 from 0, +1 for reaching 9; the observation an int64 ``Box``
-  ``[position, steps taken]`` (what a grid or a counter gives), actions left / right."""
+  ``[position, steps taken]`` (what a grid or a counter gives), actions left / right.
+* ``ShiftWalk-v0``: a walk on -5..5 from 0, +1 for reaching 5; actions ``Discrete(3, start=-1)``
+  (left, stay, right: the move itself), checked by the env (an action outside them raises)."""
 
 from __future__ import annotations
 
@@ -37,3 +39,32 @@ class IntWalkEnv(gym.Env):
 
 if "IntWalk-v0" not in gym.registry:
     gym.register("IntWalk-v0", entry_point=IntWalkEnv, max_episode_steps=50)
+
+
+class ShiftWalkEnv(gym.Env):
+    """A walk on -5..5 from 0; observation float32[1] = position; action -1, 0 or +1
+    (``Discrete(3, start=-1)``), an action outside them raises; reaching 5 gives +1 and ends
+    the episode. ``moves`` records the actions the env was given."""
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Box(-5.0, 5.0, (1,), np.float32)
+        self.action_space = gym.spaces.Discrete(3, start=-1)
+        self.pos = 0
+        self.moves: list[int] = []
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = 0
+        return np.array([self.pos], np.float32), {}
+
+    def step(self, action):
+        if not self.action_space.contains(action):
+            raise ValueError(f"action {action!r} is not in {self.action_space}")
+        self.moves.append(int(action))
+        self.pos = min(5, max(-5, self.pos + int(action)))
+        done = self.pos == 5
+        return np.array([self.pos], np.float32), float(done), done, False, {}
+
+
+if "ShiftWalk-v0" not in gym.registry:
+    gym.register("ShiftWalk-v0", entry_point=ShiftWalkEnv, max_episode_steps=40)

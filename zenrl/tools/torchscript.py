@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from zenrl.common.env_factory import NormalisedActions
+from zenrl.common.env_factory import NormalisedActions, ShiftedActions
 from zenrl.common.errors import ZenrlError
 from zenrl.games.burgerwar import geometry as geo
 from zenrl.common.recurrent import RecurrentQNetwork
@@ -28,15 +28,18 @@ class ExportedPolicy(torch.nn.Module):
 
     A Gaussian actor-critic (continuous actions) with ``bounds`` = the env's ``(low, high)``:
     float32[d], its mean action mapped from [-1, 1] onto the env's bounds (what the robot takes).
+    A discrete policy for an env whose actions are ``Discrete(n, start)`` returns the env's action,
+    ``start`` + the greedy index (``start`` 0 for the rest).
     """
 
     def __init__(self, net: torch.nn.Module, keys: Sequence[str], dict_obs: bool,
-                 bounds: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 bounds: tuple[np.ndarray, np.ndarray] | None = None, start: int = 0) -> None:
         super().__init__()
         self.net = net
         self.keys = list(keys)
         self.dict_obs = dict_obs
         self.continuous = bounds is not None
+        self.start = int(start)
         if bounds is not None:
             self.register_buffer("low", torch.as_tensor(np.asarray(bounds[0], np.float32)))
             self.register_buffer("span", torch.as_tensor(np.asarray(bounds[1], np.float32) - np.asarray(bounds[0], np.float32)))
@@ -51,7 +54,7 @@ class ExportedPolicy(torch.nn.Module):
             out = out[0]
         if self.continuous:
             return self.low + (out[0].clamp(-1.0, 1.0) + 1.0) * 0.5 * self.span
-        return out.argmax(1)[0]
+        return out.argmax(1)[0] + self.start
 
 
 class _MixtureOfDicts(torch.nn.Module):
@@ -230,13 +233,14 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
         bounds = (env.low, env.high) if continuous and isinstance(env, NormalisedActions) else None
         if continuous and bounds is None:
             raise ZenrlError(f"{checkpoint}: a continuous-action policy for an env whose actions are not normalised")
+        start = env.start if isinstance(env, ShiftedActions) else 0
         ex = _example_obs(space)
         example = {k: torch.as_tensor(np.asarray(ex[k])) for k in keys} if dict_obs else torch.as_tensor(np.asarray(ex))
         with torch.no_grad(), warnings.catch_warnings():
             # torch 2.13 deprecates TorchScript in favour of torch.export, but a TorchScript file
             # is what loads with a bare `torch.jit.load` (and from C++ libtorch) on a robot
             warnings.simplefilter("ignore", DeprecationWarning)
-            traced = [torch.jit.trace(ExportedPolicy(net, keys, dict_obs, bounds).eval(), (example,), strict=False,
+            traced = [torch.jit.trace(ExportedPolicy(net, keys, dict_obs, bounds, start).eval(), (example,), strict=False,
                                       check_trace=False) for net in nets]
             if len(traced) == 1:
                 traced = traced[0]
@@ -252,7 +256,10 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
                 "call": ("policy({key: tensor}) " if dict_obs else "policy(tensor) ") +
                         ("-> float32[d] tensor, the action in the env's units within action_bounds (the Gaussian "
                          "policy's mean; one observation, no batch dim)" if continuous
-                         else "-> int64 scalar tensor (one observation, no batch dim)")}
+                         else "-> int64 scalar tensor (one observation, no batch dim)"
+                         + (f": the env's action, action_start {start} + the greedy index" if start else ""))}
+        if start:
+            meta["action_start"] = start
         if bounds is not None:
             meta["action_bounds"] = {"low": np.asarray(bounds[0]).tolist(), "high": np.asarray(bounds[1]).tolist()}
         if len(paths) > 1:
