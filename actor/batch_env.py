@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import gymnasium as gym
 import numpy as np
@@ -17,10 +18,15 @@ _OUTCOME_SIGN = {"win": 1, "draw": 0, "loss": -1}
 
 
 def stack_flat(obs_list: list) -> dict[str, np.ndarray]:
-    """List of E single observations -> flat named arrays with leading dim E."""
-    if isinstance(obs_list[0], dict):
-        return flat_obs({k: np.stack([o[k] for o in obs_list]) for k in obs_list[0]})
-    return flat_obs(np.stack(obs_list))
+    """List of E single observations -> flat named arrays with leading dim E (a Dict inside a
+    Dict gives ``obs/<key>/<key>``, as :func:`~zenrl.common.specs.obs_fields` names it)."""
+    return flat_obs(_stacked(obs_list))
+
+
+def _stacked(items: list) -> Any:
+    if isinstance(items[0], Mapping):
+        return {k: _stacked([o[k] for o in items]) for k in items[0]}
+    return np.stack(items)
 
 
 @dataclass

@@ -31,6 +31,7 @@ from zenrl.common.checkpoints import TrainingState, read_checkpoint
 from zenrl.common.errors import CheckpointError, ZenrlError
 from zenrl.common.networks import ActorCritic, action_size, flat_obs, obs_spec, sample_categorical
 from zenrl.common.recurrent import RecurrentQNetwork
+from zenrl.common.specs import SEP, flatten
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +61,13 @@ def build_network(state: TrainingState, observation_space: gym.Space, action_spa
 # --------------------------------------------------------------------------------------------
 def single_to_flat(obs: Any) -> dict[str, np.ndarray]:
     """One observation (array or dict of arrays, no batch dim) -> flat arrays with B = 1."""
+    return flat_obs(_batch_of_one(obs))
+
+
+def _batch_of_one(obs: Any) -> Any:
     if isinstance(obs, Mapping):
-        return flat_obs({k: np.asarray(v)[None] for k, v in obs.items()})
-    return flat_obs(np.asarray(obs)[None])
+        return {k: _batch_of_one(v) for k, v in obs.items()}
+    return np.asarray(obs)[None]
 
 
 def greedy_actions(net: torch.nn.Module, flat: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -215,6 +220,7 @@ class ExportedPlayer:
         self.start = int(self.meta.get("action_start", 0))
         self.keys = list(self.meta["inputs"])
         self.dict_obs = self.keys != ["obs"]
+        self.nested = any(SEP in k for k in self.keys)
         #: a mixed policy's member count (``zenrl export --member``); 1 for one network
         self.members = int(self.meta.get("members", 1))
         if self.members > 1 and not hasattr(self.module, "pick"):
@@ -237,7 +243,7 @@ class ExportedPlayer:
         """:class:`ZenrlError` naming the first input or the action count that differs from the env's.
         The env may give more observation keys than the policy reads (e.g. ``enemy_seen`` to a
         policy trained without it): it reads its own keys only."""
-        spaces = observation_space.spaces if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
+        spaces = flatten(observation_space.spaces) if isinstance(observation_space, gym.spaces.Dict) else {"obs": observation_space}
         if not set(self.keys) <= set(spaces):
             raise ZenrlError(f"{self.name}: exported for observation keys {sorted(self.keys)}, the env has {sorted(spaces)}")
         for k, want in self.meta["inputs"].items():
@@ -269,8 +275,9 @@ class ExportedPlayer:
         if self.members > 1:
             self.module.pick(self.current)
         with torch.no_grad():
-            if self.dict_obs:
-                x = {k: torch.as_tensor(np.ascontiguousarray(obs[k])) for k in self.keys}
+            if self.dict_obs:  # a Dict inside a Dict: the program's keys are paths ("a/b")
+                flat = flatten(obs) if self.nested else obs
+                x = {k: torch.as_tensor(np.ascontiguousarray(flat[k])) for k in self.keys}
             else:
                 x = torch.as_tensor(np.ascontiguousarray(obs))
             out = self.module(x)

@@ -4,7 +4,9 @@
 * ``IntWalk-v0``: a walk on 0..9 from 0, +1 for reaching 9; the observation an int64 ``Box``
   ``[position, steps taken]`` (what a grid or a counter gives), actions left / right.
 * ``ShiftWalk-v0``: a walk on -5..5 from 0, +1 for reaching 5; actions ``Discrete(3, start=-1)``
-  (left, stay, right: the move itself), checked by the env (an action outside them raises)."""
+  (left, stay, right: the move itself), checked by the env (an action outside them raises).
+* ``NestedDict-v0``: a Dict inside a Dict (``{"arm": {"joints", "grip"}, "cell": Discrete}``);
+  reward 1 for action 1."""
 
 from __future__ import annotations
 
@@ -68,3 +70,27 @@ class ShiftWalkEnv(gym.Env):
 
 if "ShiftWalk-v0" not in gym.registry:
     gym.register("ShiftWalk-v0", entry_point=ShiftWalkEnv, max_episode_steps=40)
+
+
+class NestedDictEnv(gym.Env):
+    """Observation ``{"arm": {"joints": float32[3], "grip": int32 Box[1]}, "cell": Discrete(4)}``
+    (random), two actions, reward 1 for action 1, 20 steps an episode."""
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Dict({
+            "arm": gym.spaces.Dict({"joints": gym.spaces.Box(-1.0, 1.0, (3,), np.float32),
+                                    "grip": gym.spaces.Box(0, 5, (1,), np.int32)}),
+            "cell": gym.spaces.Discrete(4)})
+        self.action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.observation_space.seed(seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), float(int(action) == 1), False, False, {}
+
+
+if "NestedDict-v0" not in gym.registry:
+    gym.register("NestedDict-v0", entry_point=NestedDictEnv, max_episode_steps=20)

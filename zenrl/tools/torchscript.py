@@ -16,6 +16,7 @@ from zenrl.common.env_factory import NormalisedActions, ShiftedActions
 from zenrl.common.errors import ZenrlError
 from zenrl.games.burgerwar import geometry as geo
 from zenrl.common.recurrent import RecurrentQNetwork
+from zenrl.common.specs import flatten
 from zenrl.tools.loading import (ExportedPlayer, env_config_for, is_exported, is_match_env, load_policy_env,
                                  resolve_checkpoint)
 
@@ -23,7 +24,7 @@ class ExportedPolicy(torch.nn.Module):
     """Greedy policy for TorchScript: one observation (no batch dim) -> int64 scalar action.
 
     Dict observation space: ``forward({"lidar": float[360], "pose": float[4], ...})`` keyed like
-    the env's observation space; plain Box space: ``forward(tensor)``. Preprocessing is inside
+    the env's observation space (a Dict inside it by path: ``{"arm/joints": ...}``); plain Box space: ``forward(tensor)``. Preprocessing is inside
     (uint8 camera images are scaled by 1/255, other inputs cast to float32).
 
     A Gaussian actor-critic (continuous actions) with ``bounds`` = the env's ``(low, high)``:
@@ -228,14 +229,17 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
                                  "call takes one observation and would have to carry the LSTM state between calls")
         space = env.observation_space
         dict_obs = isinstance(space, gym.spaces.Dict)
-        keys = list(space.spaces) if dict_obs else ["obs"]
+        # a Dict inside a Dict: its leaves keyed by path ("a/b"), as zenrl's fields name them
+        leaves = flatten(space.spaces) if dict_obs else {"obs": space}
+        keys = list(leaves)
         continuous = bool(getattr(nets[0], "continuous", False))
         bounds = (env.low, env.high) if continuous and isinstance(env, NormalisedActions) else None
         if continuous and bounds is None:
             raise ZenrlError(f"{checkpoint}: a continuous-action policy for an env whose actions are not normalised")
         start = env.start if isinstance(env, ShiftedActions) else 0
         ex = _example_obs(space)
-        example = {k: torch.as_tensor(np.asarray(ex[k])) for k in keys} if dict_obs else torch.as_tensor(np.asarray(ex))
+        example = ({k: torch.as_tensor(np.asarray(v)) for k, v in flatten(ex).items()} if dict_obs
+                   else torch.as_tensor(np.asarray(ex)))
         with torch.no_grad(), warnings.catch_warnings():
             # torch 2.13 deprecates TorchScript in favour of torch.export, but a TorchScript file
             # is what loads with a bare `torch.jit.load` (and from C++ libtorch) on a robot
@@ -247,10 +251,12 @@ def export(checkpoint: str, out: str | os.PathLike[str], env_id: str | None = No
             else:
                 traced = torch.jit.script((_MixtureOfDicts if dict_obs else _MixtureOfTensors)(traced).eval())
         inputs = {}
-        for k in keys:
-            sub = space.spaces[k] if dict_obs else space
+        for k, sub in leaves.items():
             inputs[k] = {"shape": list(sub.shape), "dtype": str(sub.dtype)}
-        meta = {"format": 1, "env": env.spec.id if env.spec else cfg.env.id, "env_kwargs": _jsonable(env_config_for(cfg, env_id, env_kwargs).kwargs),
+        made = env_config_for(cfg, env_id, env_kwargs)
+        # the id as given ("mypkg.envs:MyEnv-v0" keeps the module that registers it), so that
+        # `zenrl evaluate --exported` makes the env again
+        meta = {"format": 1, "env": made.id, "env_kwargs": _jsonable(made.kwargs),
                 "algo": cfg.algo, "inputs": inputs,
                 "n_actions": int(env.action_space.shape[0]) if continuous else int(env.action_space.n),
                 "call": ("policy({key: tensor}) " if dict_obs else "policy(tensor) ") +
