@@ -26,6 +26,7 @@ import torch
 
 from zenrl.actor.adders import RolloutGradients
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.env_guard import EnvLimits
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Sampling
 from zenrl.actor.weights import WeightsFollower
@@ -48,7 +49,7 @@ class A3CWorker(ActorWorker):
         self.cfg, self.node, self.metrics = cfg, node, metrics
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
-        envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1), limits=EnvLimits.of(cfg))
         n_actions = action_size(envs.single_action_space, cfg.algo)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, worker_id, slot,

@@ -26,6 +26,7 @@ import torch
 
 from zenrl.actor.adders import EvalEpisodes
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.env_guard import EnvLimits
 from zenrl.actor.policies import EpisodeStartsToPolicy, Greedy, RecurrentGreedy, Sampling
 from zenrl.actor.weights import WeightsFollower
 from zenrl.actor.worker import ActorWorker, EvalInterval
@@ -59,7 +60,7 @@ class Evaluator(ActorWorker):
         self.node = node
         keys = P.Keys(run_id)
         set_compute_threads(1)
-        envs = EnvBatch(cfg.env, ecfg.episodes, seed=cfg.seed + ecfg.seed_offset)
+        envs = EnvBatch(cfg.env, ecfg.episodes, seed=cfg.seed + ecfg.seed_offset, limits=EnvLimits.of(cfg))
         self.net = build_policy_net(cfg, envs)
         n_actions = int(action_size(envs.single_action_space, cfg.algo))
         first = cfg.seed + ecfg.seed_offset

@@ -27,6 +27,7 @@ import torch
 
 from zenrl.actor.adders import UnrollsToLearner
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.env_guard import EnvLimits
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Sampling
 from zenrl.actor.weights import WeightsFollower
@@ -69,7 +70,7 @@ class ImpalaActor(ActorWorker):
         self.cfg, self.node = cfg, node
         keys = P.Keys(run_id)
         set_compute_threads(cfg.actor.torch_threads)
-        envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        envs = EnvBatch(cfg.env, cfg.actor.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1), limits=EnvLimits.of(cfg))
         n_actions = action_size(envs.single_action_space, cfg.algo)
         spec = obs_spec(envs.single_observation_space)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot,

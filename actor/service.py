@@ -24,6 +24,7 @@ import torch
 
 from zenrl.actor.adders import NStepToReplay
 from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.env_guard import EnvLimits
 from zenrl.actor.pacing import StepPacer
 from zenrl.actor.policies import Demonstrated, EpsilonGreedyQ, Obs
 from zenrl.actor.weights import WeightsFollower
@@ -48,7 +49,7 @@ class ApexActor(ActorWorker):
         self.cfg, self.node = cfg, node
         keys = P.Keys(run_id)
         set_compute_threads(acfg.torch_threads)
-        envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1))
+        envs = EnvBatch(cfg.env, acfg.envs_per_actor, seed=cfg.seed + 10_000 * (slot + 1), limits=EnvLimits.of(cfg))
         spec = obs_spec(envs.single_observation_space)
         n_actions = num_actions(envs.single_action_space, cfg.algo)
         self.league = match_opponents(envs, cfg, node, run_id, actor_id, slot, lambda: QNetwork(spec, n_actions, cfg.network))

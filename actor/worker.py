@@ -171,6 +171,7 @@ class ActorWorker:
     def report(self, interval_s: float) -> tuple[dict[str, Any], str | None]:
         self._publish_episodes()
         vals = self.adder.values()
+        vals.update(self.envs.values())
         vals.update({"env_steps": self.env_steps, "policy_version": self.weights.version,
                      "weights_rejected": self.weights.rejected})
         if self.slot is not None:

@@ -9,6 +9,12 @@ class ConfigError(ZenrlError, ValueError):
     """A configuration value is invalid; the message names the option and the value."""
 
 
+class EnvOutputError(ConfigError):
+    """An env gave what every later step would give again and the run cannot use (a reward that
+    is not one number, a reward beyond the run's bound): the role stops on it as on a
+    configuration error (exit code 2, not restarted), and the message names what to change."""
+
+
 class ProtocolError(ZenrlError, ValueError):
     """A wire message is malformed. ``field`` names what was wrong, ``reason`` is a short
     machine-readable tag used to count rejections (e.g. ``"version"``, ``"dtype"``)."""

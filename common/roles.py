@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 from zenrl.common import protocol as P
-from zenrl.common.errors import ZenrlError
+from zenrl.common.errors import EnvOutputError, ZenrlError
 
 log = logging.getLogger(__name__)
 
@@ -177,9 +177,13 @@ class Supervisor:
         self.threads: list[WatchedThread] = []
 
     def call(self, name: str, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)``; an exception is counted and logged and None returned."""
+        """``fn(*args)``; an exception is counted and logged and None returned, except an
+        :class:`~zenrl.common.errors.EnvOutputError` (an env that gives what the run cannot use
+        on every step): it ends the role, as a configuration error does."""
         try:
             out = fn(*args)
+        except EnvOutputError:
+            raise
         except Exception as e:  # noqa: BLE001 - supervision: one failure costs one unit of work
             self.record(name, e)
             return None

@@ -15,14 +15,18 @@ import numpy as np
 
 
 class IntWalkEnv(gym.Env):
-    """A walk on 0..9; observation int64[2] = (position, steps taken); reaching 9 gives +1 and ends
-    the episode; 50 steps at most."""
+    """A walk on 0..9; observation int64[2] = (position, steps taken); reaching 9 gives +1 (or
+    ``goal_reward``) and ends the episode; 50 steps at most. A faulty env on request: every
+    ``nan_every``-th step of the env gives a NaN reward, every ``over_every``-th an observation
+    whose step count (150) is above its bound (100)."""
 
-    def __init__(self, dtype: str = "int64") -> None:
+    def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0) -> None:
         self.dt = np.dtype(dtype)
         self.observation_space = gym.spaces.Box(0, 100, (2,), self.dt)
         self.action_space = gym.spaces.Discrete(2)
         self.pos = self.t = 0
+        self.nan_every, self.over_every, self.goal_reward = nan_every, over_every, goal_reward
+        self.steps = 0
 
     def _obs(self) -> np.ndarray:
         return np.array([self.pos, self.t], self.dt)
@@ -35,8 +39,14 @@ class IntWalkEnv(gym.Env):
     def step(self, action):
         self.pos = min(9, max(0, self.pos + (1 if int(action) == 1 else -1)))
         self.t += 1
+        self.steps += 1
         done = self.pos == 9
-        return self._obs(), float(done), done, False, {}
+        obs, reward = self._obs(), self.goal_reward if done else 0.0
+        if self.over_every and self.steps % self.over_every == 0:
+            obs[1] = 150
+        if self.nan_every and self.steps % self.nan_every == 0:
+            reward = float("nan")
+        return obs, reward, done, False, {}
 
 
 if "IntWalk-v0" not in gym.registry:

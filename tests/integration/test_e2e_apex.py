@@ -83,18 +83,24 @@ def test_zenrl_run_learns_a_discrete_observation_env(tmp_path, run_id):
     assert torch.equal(got, want)
 
 
-def test_zenrl_run_takes_an_env_with_integer_observations(tmp_path, run_id, monkeypatch):
-    """A user's env, in a module of their own on PYTHONPATH (a copy of
-    tests/integration/custom_envs.py, named by ``module:id``), whose observation is an int64 Box:
-    the actors send it as the float32 the env's spec names, so the replay refuses nothing (before,
-    every chunk was refused as `obs_dtype` and the actors quarantined)."""
+def _user_envs(tmp_path, monkeypatch) -> None:
+    """tests/integration/custom_envs.py as a user's module ``user_envs`` on PYTHONPATH, how a
+    user's env reaches every process of a run."""
     import shutil
     from pathlib import Path
 
     mods = tmp_path / "user_code"
     mods.mkdir()
     shutil.copy(Path(__file__).with_name("custom_envs.py"), mods / "user_envs.py")
-    monkeypatch.setenv("PYTHONPATH", str(mods))  # how a user's module reaches every process
+    monkeypatch.setenv("PYTHONPATH", str(mods))
+
+
+def test_zenrl_run_takes_an_env_with_integer_observations(tmp_path, run_id, monkeypatch):
+    """A user's env, in a module of their own on PYTHONPATH (a copy of
+    tests/integration/custom_envs.py, named by ``module:id``), whose observation is an int64 Box:
+    the actors send it as the float32 the env's spec names, so the replay refuses nothing (before,
+    every chunk was refused as `obs_dtype` and the actors quarantined)."""
+    _user_envs(tmp_path, monkeypatch)
     p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id,
                                  "env.id=user_envs:IntWalk-v0", "target_return=null",
                                  "max_updates=300", "max_wall_s=240", "evaluator.interval_s=2", timeout_s=420)
@@ -104,4 +110,43 @@ def test_zenrl_run_takes_an_env_with_integer_observations(tmp_path, run_id, monk
     assert summary["replay"]["rejected_total"] == 0, summary["replay"]
     assert summary["learner"]["updates"] >= 300
     assert max(e["mean"] for e in summary["evals"]) == 1.0  # the walk to 9 within 50 steps
+    assert not _leftovers(run_id), _leftovers(run_id)
+
+
+def test_an_honest_actor_whose_env_misbehaves_sends_nothing_the_replay_rejects(tmp_path, run_id, monkeypatch):
+    """The int walk giving a NaN reward every 97th step and a step count of 150 (its bound 100)
+    every 89th: the actors cut the NaN steps and clip the counts (EnvGuard), the replay rejects
+    nothing and quarantines no one (before: whole chunks rejected, both actors quarantined, said
+    only in the replay's log), the launcher's terminal says what happened, and the walk is learned."""
+    _user_envs(tmp_path, monkeypatch)
+    env = "env.id=user_envs:IntWalk-v0"
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, env,
+                                 "env.kwargs={nan_every: 97, over_every: 89}", "target_return=null",
+                                 "max_updates=300", "max_wall_s=240", "evaluator.interval_s=2", timeout_s=420)
+    assert p.returncode == 0, (p.stderr[-3000:], logs)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("max_updates"), (summary["stop_reason"], logs.get("replay.log"))
+    assert summary["replay"]["rejected_total"] == 0 and not summary["replay"].get("quarantined"), summary["replay"]
+    troubles = summary["env_troubles"]
+    assert troubles["env_steps_cut"] > 0 and troubles["env_obs_clipped"] > 0, troubles
+    assert "the actors' envs misbehave:" in p.stderr and "steps cut for NaN or Inf" in p.stderr, p.stderr[-3000:]
+    assert "reward nan" in logs["actor-0.log"] and "observation obs[1] = 150 is above the env's bound 100" in logs["actor-0.log"]
+    assert max(e["mean"] for e in summary["evals"]) == 1.0
+    assert not _leftovers(run_id), _leftovers(run_id)
+
+
+def test_a_reward_beyond_the_runs_bound_stops_the_run_at_once_naming_the_setting(tmp_path, run_id, monkeypatch):
+    """A goal reward of 5,000 against replay.max_abs_reward 1,000: the first actor to reach the
+    goal stops on it (exit code 2, not restarted) and the run stops with the line that names the
+    setting to raise (before: every chunk holding it rejected, the actors quarantined)."""
+    _user_envs(tmp_path, monkeypatch)
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id,
+                                 "env.id=user_envs:IntWalk-v0", "env.kwargs={goal_reward: 5000}",
+                                 "target_return=null", "max_wall_s=120", timeout_s=300)
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    assert ("gave a reward of 5000, beyond replay.max_abs_reward = 1000" in p.stderr
+            and "Raise replay.max_abs_reward" in p.stderr), p.stderr[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert "failed on its configuration" in summary["stop_reason"], summary["stop_reason"]
+    assert summary["replay"].get("rejected_total", 0) == 0
     assert not _leftovers(run_id), _leftovers(run_id)

@@ -54,7 +54,9 @@ def test_apex_actor_survives_a_failing_env_step_counts_it_and_publishes(tmp_path
     assert last["errors/RuntimeError"] == 1 and last["stalled"] == ""
     assert {k for k in last if not k.startswith("errors")} == {
         "env_steps", "slot", "policy_version", "sent_transitions", "sent_chunks", "failed_chunks",
-        "undelivered_chunks", "backlog_chunks", "split_chunks", "oversized_chunks", "weights_rejected", "stalled"}
+        "undelivered_chunks", "backlog_chunks", "split_chunks", "oversized_chunks", "weights_rejected", "stalled",
+        "env_steps_cut", "env_obs_clipped", "env_resets_retried"}
+    assert last["env_steps_cut"] == last["env_obs_clipped"] == last["env_resets_retried"] == 0
     assert last["slot"] == 1 and last["policy_version"] == -1
     assert node.tokens == [keys.alive("actor", "a0")]
     # transitions: every start whose n steps were taken, flushed on stop; chunks of whole steps

@@ -33,6 +33,8 @@ class Progress:
     replays: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: a league run: the league service's last stats
     league: dict[str, Any] = field(default_factory=dict)
+    #: each actor's counts of its envs' problems (``env_steps_cut``, ...: zenrl.actor.env_guard)
+    actor_env: dict[str, dict[str, int]] = field(default_factory=dict)
     evals: list[dict[str, Any]] = field(default_factory=list)
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
@@ -65,6 +67,9 @@ class Progress:
             if isinstance(msg, P.Stats):
                 if msg.role == "actor":
                     self._actor(msg.id, int(msg.values.get("env_steps", 0)))
+                    env = {k: int(v) for k, v in msg.values.items() if k in ENV_TROUBLES and isinstance(v, (int, float))}
+                    if env:
+                        self.actor_env[msg.id] = env
                 elif msg.role == "learner":
                     self.learner = dict(msg.values)
                 elif msg.role == "replay":
@@ -108,6 +113,23 @@ class Progress:
             (t0, s0), (t1, s1) = seen[0], seen[-1]
             self.env_steps_rate = (s1 - s0) / max(t1 - t0, 1e-9)
 
+    def troubles(self) -> dict[str, Any]:
+        """What went wrong with the run's data so far: the actors' envs (:data:`ENV_TROUBLES`,
+        summed), the chunks or unrolls the replay and the learner rejected, the sources they
+        hold in quarantine."""
+        with self.lock:
+            out: dict[str, Any] = {k: sum(a.get(k, 0) for a in self.actor_env.values()) for k in ENV_TROUBLES}
+            out["rejected"] = int(self.replay.get("rejected_total") or 0) + int(self.learner.get("rejected_total") or 0)
+            reasons: dict[str, int] = {}
+            for src in (self.replay, self.learner):
+                for k, v in src.items():
+                    if k.startswith("rejected_") and k != "rejected_total" and "/" not in k and isinstance(v, int) and v:
+                        reasons[k[len("rejected_"):]] = reasons.get(k[len("rejected_"):], 0) + v
+            out["reasons"] = reasons
+            q = [str(src.get("quarantined_sources") or "") for src in (self.replay, self.learner) if src.get("quarantined")]
+            out["quarantined"] = ", ".join(x for x in q if x)
+        return out
+
     @property
     def last_eval(self) -> float | None:
         return self.evals[-1]["mean"] if self.evals else None
@@ -125,6 +147,45 @@ class Progress:
                 **({f"league_{k.replace('/', '_')}": v for k, v in self.league.items()
                     if k in ("players", "snapshots", "results_total") or k.startswith("generation/")}
                    if self.league else {})}
+
+
+#: the counts an actor reports of its envs' problems (zenrl.actor.env_guard), and what each means
+ENV_TROUBLES = {"env_steps_cut": "steps cut for NaN or Inf", "env_obs_clipped": "observations clipped to the env's bounds",
+                "env_resets_retried": "resets retried for NaN or Inf"}
+#: the launcher repeats a warning about the run's data at most this often
+TROUBLE_EVERY_S = 30.0
+
+
+class TroubleWatch:
+    """Turns :meth:`Progress.troubles` into a warning line for the launcher's terminal when a
+    count has grown, at most once per :data:`TROUBLE_EVERY_S`: the details are in the roles'
+    logs, where a user running ``zenrl run`` would not look unless told."""
+
+    def __init__(self, every_s: float = TROUBLE_EVERY_S) -> None:
+        self.every_s = every_s
+        self.seen: dict[str, int] = {}
+        self.last: float | None = None
+
+    def news(self, t: dict[str, Any], now: float | None = None) -> str | None:
+        now = time.monotonic() if now is None else now
+        if self.last is not None and now - self.last < self.every_s:
+            return None
+        counts = {k: int(t.get(k, 0)) for k in (*ENV_TROUBLES, "rejected")}
+        grown = [k for k, v in counts.items() if v > self.seen.get(k, 0)]
+        if not grown:
+            return None
+        parts = [f"{counts[k]:,} {ENV_TROUBLES[k]}" for k in ENV_TROUBLES if k in grown]
+        line = ""
+        if parts:
+            line = "the actors' envs misbehave: " + ", ".join(parts) + " (logs/actor-*.log say which and why)"
+        if "rejected" in grown:
+            why = ", ".join(f"{k} {v:,}" for k, v in sorted(t.get("reasons", {}).items(), key=lambda kv: -kv[1])[:3])
+            rej = f"{counts['rejected']:,} chunks or unrolls rejected ({why or 'see the logs'})"
+            if t.get("quarantined"):
+                rej += f"; quarantined: {str(t['quarantined'])[:120]}"
+            line = (line + "; " if line else "") + rej + " (logs/replay*.log, logs/learner.log)"
+        self.seen, self.last = counts, now
+        return line
 
 
 def render_table(run_id: str, line: dict[str, Any], stop_reason: str = ""):

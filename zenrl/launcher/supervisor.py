@@ -23,7 +23,7 @@ import yaml
 from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError
-from zenrl.launcher.display import Progress, render_table
+from zenrl.launcher.display import ENV_TROUBLES, Progress, TroubleWatch, render_table
 from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
                                       read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
                                       write_launcher_info)
@@ -398,10 +398,14 @@ class Launcher:
                 live = Live(self._table(), console=console, refresh_per_second=2, transient=False)
                 live.start()
         last_progress = last_summary = time.monotonic()
+        trouble = TroubleWatch()
         try:
             while not self.stop.wait(0.5):
                 p = self.progress
                 p.tick_rate()
+                news = trouble.news(p.troubles())
+                if news:
+                    log.warning("%s", news)
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
@@ -494,7 +498,9 @@ class Launcher:
                 **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
                 "solved": solved is not None,
                 "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
-                "restarts": segment["restarts"], "segments": [*self.earlier, segment]}
+                "restarts": segment["restarts"], "segments": [*self.earlier, segment],
+                # this launch's actors' counts of their envs' problems (zenrl.actor.env_guard)
+                "env_troubles": {k: v for k, v in p.troubles().items() if k in ENV_TROUBLES}}
 
     def _write_summary(self) -> None:
         write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())

@@ -1,0 +1,203 @@
+"""An honest actor whose env misbehaves (EnvGuard, in every actor's EnvBatch): a step with NaN or
+Inf is cut (truncated there, reward 0, the observation before it as its last), a finite observation
+outside the env's bounds is clipped where the run checks them, a reward that is not one number or
+beyond the run's bound stops the actor with a line naming the setting. Nothing of it reaches the
+services, which would reject whole chunks and quarantine the actor."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from zenrl.actor.batch_env import EnvBatch
+from zenrl.actor.env_guard import RESET_RETRIES, EnvGuard, EnvLimits
+from zenrl.common.config import EnvConfig, load_config
+from zenrl.common.errors import ConfigError, EnvOutputError
+from zenrl.common.roles import Supervisor
+
+
+class Scripted(gym.Env):
+    """Observation float32[2] in [-1, 1] (a Dict {"pos": that, "vel": unbounded float32[1]} with
+    ``dict_obs``); step t gives obs (t/100, -t/100) and reward 1, except what ``script`` says:
+    ``{t: {"obs": ..., "reward": ...}}`` for the env with seed ``target`` (t counts steps since
+    that env was made). ``bad_resets``: resets of the target env that give NaN."""
+
+    def __init__(self, script=None, target: int = 0, dict_obs: bool = False, bad_resets: int = 0) -> None:
+        box = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.dict_obs = dict_obs
+        self.observation_space = (gym.spaces.Dict({"pos": box, "vel": gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)})
+                                  if dict_obs else box)
+        self.action_space = gym.spaces.Discrete(2)
+        self.script, self.target, self.bad_resets = dict(script or {}), target, bad_resets
+        self.t, self.me = 0, None
+
+    def _obs(self, pos, vel=0.0):
+        pos = np.asarray(pos, np.float32)
+        return {"pos": pos, "vel": np.array([vel], np.float32)} if self.dict_obs else pos
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.me = seed
+        if self.me == self.target and self.bad_resets > 0:
+            self.bad_resets -= 1
+            return self._obs([np.nan, 0.0]), {}
+        return self._obs([0.0, 0.0]), {}
+
+    def step(self, action):
+        self.t += 1
+        s = self.script.get(self.t) if self.me == self.target else None
+        obs, reward = self._obs([self.t / 100, -self.t / 100]), 1.0
+        if s:
+            obs = s.get("obs", obs)
+            reward = s.get("reward", reward)
+        return obs, reward, False, False, {}
+
+
+if "test/Scripted-v0" not in gym.registry:
+    gym.register("test/Scripted-v0", entry_point=Scripted)
+
+
+def batch(script=None, limits=EnvLimits(1e3, "replay.max_abs_reward", True), n=3, **kw) -> EnvBatch:
+    envs = EnvBatch(EnvConfig(id="test/Scripted-v0", kwargs={"script": script or {}, **kw}), n, seed=0, limits=limits)
+    envs.reset()
+    return envs
+
+
+def f32(*x):
+    return np.array(x, np.float32)
+
+
+def run(envs: EnvBatch, steps: int):
+    return [envs.step(np.zeros(envs.num_envs, np.int64)) for _ in range(steps)]
+
+
+@pytest.mark.parametrize("bad", [{"reward": float("nan")}, {"reward": float("inf")}, {"obs": np.array([0.5, np.nan], np.float32)},
+                                 {"reward": np.float32("nan")}])
+def test_a_step_with_nan_or_inf_is_cut_and_nothing_else_lost(bad):
+    envs = batch({3: bad})
+    res = run(envs, 5)
+    third = res[2]
+    # env 0: truncated at step 3 with reward 0, the observation of step 2 as the last one
+    assert third.truncated.tolist() == [True, False, False] and not third.terminated.any()
+    assert third.rewards.tolist() == [0.0, 1.0, 1.0]
+    np.testing.assert_array_equal(third.next_obs["obs"][0], f32(0.02, -0.02))
+    np.testing.assert_array_equal(third.next_obs["obs"][1:], np.stack([f32(0.03, -0.03)] * 2))  # the others' steps as given
+    np.testing.assert_array_equal(third.obs["obs"][0], [0.0, 0.0])  # env 0 was reset
+    assert third.ep_returns == [2.0] and third.ep_lengths == [3]
+    for r in res:
+        assert np.isfinite(r.rewards).all() and np.isfinite(r.next_obs["obs"]).all() and np.isfinite(r.obs["obs"]).all()
+    assert envs.values() == {"env_steps_cut": 1, "env_obs_clipped": 0, "env_resets_retried": 0}
+
+
+def test_inf_in_an_unbounded_field_is_cut_too():
+    envs = batch({2: {"obs": {"pos": np.array([0.1, 0.1], np.float32), "vel": np.array([np.inf], np.float32)}}}, dict_obs=True)
+    res = run(envs, 3)
+    assert res[1].truncated.tolist() == [True, False, False]
+    np.testing.assert_array_equal(res[1].next_obs["obs/vel"][0], [0.0])
+    assert envs.values()["env_steps_cut"] == 1
+
+
+def test_an_observation_outside_its_bounds_is_clipped_where_the_run_checks_them():
+    over = np.array([1.5, -0.25], np.float32)
+    envs = batch({2: {"obs": over}})
+    res = run(envs, 3)
+    np.testing.assert_array_equal(res[1].next_obs["obs"][0], [1.0, -0.25])  # that element to its bound only
+    assert not res[1].truncated.any() and res[1].rewards.tolist() == [1.0] * 3
+    np.testing.assert_array_equal(res[2].obs["obs"][0], f32(0.03, -0.03))
+    assert envs.values() == {"env_steps_cut": 0, "env_obs_clipped": 1, "env_resets_retried": 0}
+    # a run that does not check the bounds (replay.check_obs_bounds false) gets the values as given
+    free = batch({2: {"obs": over}}, limits=EnvLimits(1e3, "replay.max_abs_reward", False))
+    np.testing.assert_array_equal(run(free, 3)[1].next_obs["obs"][0], over)
+    assert free.values()["env_obs_clipped"] == 0
+
+
+def test_a_value_on_a_bound_that_float32_rounds_is_kept():
+    space = gym.spaces.Box(np.float32(-0.1), 0.1, (1,), np.float32)  # 0.1 in float32 is just above 0.1
+    g = EnvGuard("x", space, EnvLimits(None, "", True))
+    top = np.array([[np.float32(0.1)]], np.float32)
+    assert g.bad_rows({"obs": top}) is None
+    assert g.bad_rows({"obs": np.array([[0.1001]], np.float32)}).tolist() == [0]
+
+
+def test_a_nested_dict_leaf_is_clipped_alone():
+    envs = batch({2: {"obs": {"pos": np.array([0.0, -3.0], np.float32), "vel": np.array([7.0], np.float32)}}}, dict_obs=True)
+    res = run(envs, 2)
+    np.testing.assert_array_equal(res[1].next_obs["obs/pos"][0], [0.0, -1.0])
+    np.testing.assert_array_equal(res[1].next_obs["obs/vel"][0], [7.0])  # unbounded: kept
+
+
+@pytest.mark.parametrize("reward, taken", [(np.array([2.5], np.float32), 2.5), (np.float64(0.5), 0.5), (True, 1.0),
+                                           (np.array(3, np.int64), 3.0)])
+def test_a_reward_of_one_element_is_taken_as_its_number(reward, taken):
+    res = run(batch({1: {"reward": reward}}), 1)
+    assert res[0].rewards[0] == taken
+
+
+@pytest.mark.parametrize("reward, named", [(np.array([1.0, 2.0]), "an array of shape (2,)"), (None, "a NoneType"),
+                                           ([], "an array of shape (0,)")])
+def test_a_reward_that_is_not_one_number_stops_the_actor(reward, named):
+    envs = batch({2: {"reward": reward}})
+    run(envs, 1)
+    with pytest.raises(EnvOutputError, match=r"env test/Scripted-v0 returned a reward that is " + named.replace("(", r"\(").replace(")", r"\)")):
+        run(envs, 1)
+
+
+def test_a_reward_beyond_the_runs_bound_stops_the_actor_naming_the_setting():
+    envs = batch({2: {"reward": -4e9}})
+    run(envs, 1)
+    with pytest.raises(EnvOutputError, match=r"reward of -4e\+09, beyond replay.max_abs_reward = 1000.*Raise replay.max_abs_reward"):
+        run(envs, 1)
+    # no bound (A3C, or the run's checks off): taken as given
+    free = batch({2: {"reward": -4e9}}, limits=EnvLimits())
+    assert run(free, 2)[1].rewards[0] == np.float32(-4e9)
+
+
+def test_a_reset_with_nan_is_tried_again_then_stops_the_actor():
+    envs = batch(bad_resets=2)  # the first reset and one retry give NaN
+    assert envs.values()["env_resets_retried"] == 2
+    assert np.isfinite(run(envs, 1)[0].obs["obs"]).all()
+    with pytest.raises(EnvOutputError, match=f"reset gave an observation with NaN or Inf {RESET_RETRIES + 1} times"):
+        batch(bad_resets=RESET_RETRIES + 1)
+
+
+def test_the_run_limits_follow_its_services_checks():
+    cfg = load_config(None, [])
+    assert EnvLimits.of(cfg) == EnvLimits(cfg.replay.max_abs_reward, "replay.max_abs_reward", True, "replay.check_obs_bounds")
+    assert EnvLimits.of(load_config(None, ["replay.check_semantics=false"])) == EnvLimits()
+    assert EnvLimits.of(load_config(None, ["replay.check_obs_bounds=false"])).check_bounds is False
+    assert EnvLimits.of(load_config(None, ["algo=impala", "impala.max_abs_reward=5"])) == EnvLimits(
+        5.0, "impala.max_abs_reward", True, "impala.check_obs_bounds")
+    assert EnvLimits.of(load_config(None, ["algo=a3c"])) == EnvLimits()
+
+
+def test_the_supervisor_lets_an_env_output_error_end_the_role():
+    sup = Supervisor()
+
+    def bad():
+        raise EnvOutputError("env x returned a reward that is a NoneType")
+
+    with pytest.raises(EnvOutputError):
+        sup.call("step", bad)
+    assert isinstance(EnvOutputError("x"), ConfigError)  # the role exits as on a configuration error (2)
+    assert sup.call("step", lambda: 1 / 0) is None and sup.errors["ZeroDivisionError"] == 1
+    assert not math.isnan(0.0)
+
+
+def test_the_launcher_warns_once_a_count_grows_and_not_more_often_than_its_period():
+    from zenrl.launcher.display import TroubleWatch
+
+    w = TroubleWatch(every_s=30.0)
+    quiet = {"env_steps_cut": 0, "env_obs_clipped": 0, "env_resets_retried": 0, "rejected": 0, "reasons": {}}
+    assert w.news(quiet, now=0.0) is None
+    line = w.news({**quiet, "env_steps_cut": 3}, now=1.0)
+    assert line == "the actors' envs misbehave: 3 steps cut for NaN or Inf (logs/actor-*.log say which and why)"
+    assert w.news({**quiet, "env_steps_cut": 9}, now=20.0) is None  # within the period
+    assert w.news({**quiet, "env_steps_cut": 3}, now=40.0) is None  # nothing new
+    line = w.news({**quiet, "env_steps_cut": 3, "rejected": 40, "reasons": {"obs_bounds": 39, "spec": 1},
+                   "quarantined": "actor-0"}, now=41.0)
+    assert line == ("40 chunks or unrolls rejected (obs_bounds 39, spec 1); quarantined: actor-0 "
+                    "(logs/replay*.log, logs/learner.log)")
