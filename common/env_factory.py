@@ -119,4 +119,7 @@ class NormalisedActions(gym.ActionWrapper):
 
     def action(self, action: np.ndarray) -> np.ndarray:
         a = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
-        return (self.low + (a + 1.0) * 0.5 * (self.high - self.low)).astype(self._dtype)
+        x = self.low + (a + 1.0) * 0.5 * (self.high - self.low)
+        if np.dtype(self._dtype).kind in "iu":  # an integer Box: the nearest integer, not the one toward 0
+            x = np.rint(x)
+        return x.astype(self._dtype)

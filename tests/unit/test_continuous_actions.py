@@ -40,6 +40,19 @@ def test_pendulum_actions_are_normalised_and_clipped():
     env.close()
 
 
+def test_an_integer_box_gets_the_nearest_integer():
+    from zenrl.common.env_factory import NormalisedActions
+
+    class IntBox(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        action_space = gym.spaces.Box(-2, 2, (3,), np.int64)
+
+    env = NormalisedActions(IntBox())
+    # [-1, 1] onto [-2, 2]: 0.2 -> 0.4, 0.3 -> 0.6, -0.8 -> -1.6: the nearest integers, not toward 0
+    got = env.action(np.array([0.2, 0.3, -0.8], np.float32))
+    assert got.dtype == np.int64 and got.tolist() == [0, 1, -2]
+
+
 def test_other_action_spaces_are_left_alone():
     env = make_env(EnvConfig(id="CartPole-v1"))
     assert env.action_space == gym.spaces.Discrete(2)
