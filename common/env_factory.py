@@ -23,7 +23,11 @@ def make_env(cfg: EnvConfig, render_mode: str | None = None) -> gym.Env:
         kw["render_mode"] = render_mode
     try:
         env = gym.make(cfg.id, **kw)
-    except (gym.error.Error, TypeError, ValueError) as e:
+    except TypeError as e:
+        if render_mode is not None and "render_mode" in str(e):
+            raise ConfigError(f"env.id={cfg.id!r} takes no render_mode: it renders no {render_mode} frames") from None
+        raise ConfigError(f"env.id={cfg.id!r} with env.kwargs={cfg.kwargs!r} cannot be made: {e}") from None
+    except (gym.error.Error, ValueError) as e:
         raise ConfigError(f"env.id={cfg.id!r} with env.kwargs={cfg.kwargs!r} cannot be made: {e}") from None
     return normalised_actions(wire_observations(env))
 

@@ -20,7 +20,11 @@ class IntWalkEnv(gym.Env):
     ``nan_every``-th step of the env gives a NaN reward, every ``over_every``-th an observation
     whose step count (150) is above its bound (100)."""
 
-    def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0) -> None:
+    metadata = {"render_modes": ["rgb_array"]}  # claimed, not drawn: render() is gym.Env's
+
+    def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0,
+                 render_mode: str | None = None) -> None:
+        self.render_mode = render_mode
         self.dt = np.dtype(dtype)
         self.observation_space = gym.spaces.Box(0, 100, (2,), self.dt)
         self.action_space = gym.spaces.Discrete(2)

@@ -176,6 +176,20 @@ def test_play_cartpole_gif_cli(ckpts, tmp_path, capsys):
     assert cli_main(["play", "--checkpoint", str(ckpts["cartpole"]), "--out", str(tmp_path / "x.avi")]) == 2
 
 
+def test_play_of_an_env_that_does_not_render_says_so_in_one_line(tmp_path, capsys):
+    from tests.integration import custom_envs  # noqa: F401  (registers NestedDict-v0: no render)
+
+    # an env that takes no render_mode, and one that takes it but renders nothing
+    for env_id, says in (("NestedDict-v0", "env.id='tests.integration.custom_envs:NestedDict-v0' takes no render_mode: "
+                                           "it renders no rgb_array frames"),
+                         ("IntWalk-v0", "IntWalk-v0 renders no rgb_array frames (render() gave nothing")):
+        ckpt = make_checkpoint(tmp_path / env_id, f"tests.integration.custom_envs:{env_id}", {})
+        assert cli_main(["play", "--checkpoint", str(ckpt), "--out", str(tmp_path / "x.gif")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith(f"zenrl: error: {says}") and "Traceback" not in "".join(err), err
+        assert not (tmp_path / "x.gif").exists()
+
+
 # --------------------------------------------------------------------------------------------
 def test_plot_png(tmp_path, capsys):
     pytest.importorskip("matplotlib")

@@ -48,11 +48,22 @@ def record_episode(policy: GreedyPolicy, env: gym.Env, seed: int, options: Mappi
     obs, info = env.reset(seed=seed, options=dict(options) if options else None)
     ret, n, done = 0.0, 0, False
 
+    name = env.spec.id if env.spec else "this env"
+
     def frame() -> np.ndarray:
         try:
-            f = np.asarray(env.render(), dtype=np.uint8)
+            img = env.render()
         except gym.error.DependencyNotInstalled as e:  # classic-control envs draw with pygame
-            raise ZenrlError(f"rendering {env.spec.id if env.spec else 'this env'} needs an extra package: {e}") from None
+            raise ZenrlError(f"rendering {name} needs an extra package: {e}") from None
+        except NotImplementedError:
+            img = None
+        f = None if img is None else np.asarray(img)
+        if f is None or f.ndim != 3 or f.shape[-1] not in (3, 4):
+            modes = env.metadata.get("render_modes", [])
+            raise ZenrlError(f"{name} renders no rgb_array frames (render() gave "
+                             f"{'nothing' if f is None else f'an array of shape {f.shape}'}; its render_modes: {modes}): "
+                             "zenrl play needs an env whose render(render_mode='rgb_array') returns an image")
+        f = f[..., :3].astype(np.uint8)
         if not match:
             return _overlay(f, [f"step {n}", f"return {ret:.1f}"])
         side = str(info.get("side", ""))
