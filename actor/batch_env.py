@@ -71,8 +71,7 @@ class EnvBatch:
         self._obs = [env.reset(seed=self.seed + i)[0] for i, env in enumerate(self.envs)]
         self._ret[:] = 0
         self._len[:] = 0
-        obs = stack_flat(self._obs)
-        return self._screen_resets(obs, range(self.num_envs))
+        return self._screen_resets(self._stacked(self._obs), range(self.num_envs))
 
     def step(self, actions: np.ndarray) -> StepResult:
         E = self.num_envs
@@ -98,7 +97,7 @@ class EnvBatch:
         if not plain:
             for r in raw:
                 guard.reward(r)  # one beyond the run's bound stops the actor; NaN and Inf are cut below
-        after = stack_flat(nxt)
+        after = self._stacked(nxt)
         if not (plain and guard.clean(after)):
             bad = guard.bad_rows(after, rew)
             if bad is not None:
@@ -121,8 +120,18 @@ class EnvBatch:
             self._obs[i] = o
         if not ended:
             return StepResult(after, after, rew, term, trunc, rets, lens, outs)
-        obs = self._screen_resets(stack_flat(self._obs), ended)
+        obs = self._screen_resets(self._stacked(self._obs), ended)
         return StepResult(obs, after, rew, term, trunc, rets, lens, outs)
+
+    def _stacked(self, obs_list: list) -> dict[str, np.ndarray]:
+        """:func:`stack_flat` of the envs' observations, in the dtypes their space names
+        (:meth:`~zenrl.actor.env_guard.EnvGuard.conform`); observations of different shapes are an
+        :class:`~zenrl.common.errors.EnvOutputError`."""
+        try:
+            flat = stack_flat(obs_list)
+        except ValueError as e:  # np.stack of arrays of different shapes
+            raise EnvOutputError(f"env {self.guard.env_id} gave observations of different shapes ({e})") from None
+        return self.guard.conform(flat)
 
     def values(self) -> dict[str, int]:
         """The envs' problems the guard met: ``env_steps_cut``, ``env_obs_clipped``,
@@ -151,7 +160,7 @@ class EnvBatch:
                 g.note("clip", f"{notes[0]} (env {i} of the batch); clipped to the bounds (counted as env_obs_clipped; "
                                f"fix the env's observation_space, or set {g.limits.bounds_setting or 'the bound checks'}=false)")
                 nxt[i] = fixed
-        return stack_flat(nxt)
+        return self._stacked(nxt)
 
     def _screen_resets(self, obs: dict[str, np.ndarray], rows: Any) -> dict[str, np.ndarray]:
         """The batch ``obs`` of which ``rows`` are fresh resets: a reset with NaN or Inf is retried
@@ -178,7 +187,7 @@ class EnvBatch:
                 g.note("clip", f"{notes[0]} after a reset (env {i} of the batch); clipped to the bounds (counted as "
                                "env_obs_clipped)")
                 self._obs[i] = fixed
-        return stack_flat(self._obs)
+        return self._stacked(self._obs)
 
     def close(self) -> None:
         for env in self.envs:

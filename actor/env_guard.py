@@ -90,6 +90,14 @@ def reward_number(r: Any, env_id: str) -> float:
     return float(a.reshape(()))
 
 
+#: the dtype kinds cast, without loss of meaning, to a field of each kind (float: bool and any
+#: number; int (a Discrete index): bool and ints; uint8 images: bool only, 0/1)
+_CASTS_TO = {"f": "biuf", "i": "biu", "u": "b"}
+#: how a message names a dtype kind (a float64 observation reaches the check as float32 already)
+_KINDS = {"f": "floats", "i": "ints", "u": "unsigned ints", "b": "bools", "c": "complex numbers", "O": "Python objects",
+          "U": "strings", "S": "bytes", "V": "records", "M": "datetimes", "m": "timedeltas"}
+
+
 class _Field:
     """One flat observation field's check: ``low``/``high`` as arrays of one item's shape (NaN
     and Inf fail them: unbounded elements get the dtype's largest finite values), or None for a
@@ -163,6 +171,8 @@ class EnvGuard:
         self.env_id = env_id
         self.limits = limits or EnvLimits()
         rules = obs_rules_from_space(observation_space)
+        #: every flat field's dtype and per-item shape, as the env's space (zenrl's wire form) says
+        self.expected = {k: (np.dtype(r.dtype), tuple(r.shape)) for k, r in rules.items()}
         self.fields = [f for f in (_Field(k, r.dtype, r.shape, r.low, r.high, self.limits.check_bounds)
                                    for k, r in rules.items()) if f.active]
         self.dict_obs = any(k != "obs" for k in rules)
@@ -187,6 +197,29 @@ class EnvGuard:
         return x
 
     # -- observations ----------------------------------------------------------------------------
+    def conform(self, flat: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The flat batch with each field in the dtype its space names: numbers of another
+        kind that the dtype holds (ints for a float ``Box``, any int for a ``Discrete``) are cast;
+        a field missing, extra, of another shape, or of a dtype that would lose what it holds
+        (floats for a uint8 image, floats for a ``Discrete`` index) is an
+        :class:`EnvOutputError`: the env does not give what its observation_space says."""
+        for name, (dt, shape) in self.expected.items():
+            a = flat.get(name)
+            if a is None:
+                raise EnvOutputError(f"env {self.env_id} gave no observation {name}; its observation_space has it")
+            if a.shape[1:] != shape:
+                raise EnvOutputError(f"env {self.env_id} gave observation {name} of shape {tuple(a.shape[1:])}; its "
+                                     f"observation_space says {shape}")
+            if a.dtype != dt:
+                if a.dtype.kind not in _CASTS_TO.get(dt.kind, ""):
+                    raise EnvOutputError(f"env {self.env_id} gave observation {name} as {_KINDS[a.dtype.kind]}; its "
+                                         f"observation_space says {dt.name} (zenrl's form of it)")
+                flat[name] = a.astype(dt)
+        if len(flat) != len(self.expected):
+            extra = sorted(set(flat) - set(self.expected))
+            raise EnvOutputError(f"env {self.env_id} gave observation {extra[0]}, which its observation_space does not have")
+        return flat
+
     def clean(self, flat: Mapping[str, np.ndarray]) -> bool:
         """The per-step fast path: True when no observation of the flat batch needs a look (one
         sum per unbounded float field: NaN or Inf make it non-finite; two comparisons per bounded

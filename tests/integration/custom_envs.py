@@ -18,22 +18,24 @@ class IntWalkEnv(gym.Env):
     """A walk on 0..9; observation int64[2] = (position, steps taken); reaching 9 gives +1 (or
     ``goal_reward``) and ends the episode; 50 steps at most. A faulty env on request: every
     ``nan_every``-th step of the env gives a NaN reward, every ``over_every``-th an observation
-    whose step count (150) is above its bound (100)."""
+    whose step count (150) is above its bound (100); with ``obs_size`` another number of
+    observation values than its space's 2."""
 
     metadata = {"render_modes": ["rgb_array"]}  # claimed, not drawn: render() is gym.Env's
 
     def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, obs_size: int = 2) -> None:
         self.render_mode = render_mode
         self.dt = np.dtype(dtype)
         self.observation_space = gym.spaces.Box(0, 100, (2,), self.dt)
         self.action_space = gym.spaces.Discrete(2)
         self.pos = self.t = 0
         self.nan_every, self.over_every, self.goal_reward = nan_every, over_every, goal_reward
+        self.obs_size = obs_size
         self.steps = 0
 
     def _obs(self) -> np.ndarray:
-        return np.array([self.pos, self.t], self.dt)
+        return np.resize(np.array([self.pos, self.t], self.dt), self.obs_size)
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)

@@ -46,6 +46,9 @@ def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
     (("algo=r2d2", "env.id=Pendulum-v1"), "algo: r2d2 needs a Discrete action space, got Box(-1.0, 1.0, (1,), float32); "
                                           "algo: impala (IMPALA / APPO) and a3c take continuous (Box) actions"),
     (("env.kwargs={gravity_typo: 1}",), "unexpected keyword argument 'gravity_typo'"),
+    (("env.id=tests.integration.custom_envs:IntWalk-v0", "env.kwargs={obs_size: 3}"),
+     "zenrl: error: env tests.integration.custom_envs:IntWalk-v0 gave observation obs of shape (3,); its "
+     "observation_space says (2,)"),
 ])
 def test_env_mistake_fails_at_once_with_its_reason(tmp_path, run_id, sets, reason):
     p = zenrl(*run_args(tmp_path, run_id, *sets), timeout_s=60)

@@ -6,6 +6,8 @@ services, which would reject whole chunks and quarantine the actor."""
 
 from __future__ import annotations
 
+import re
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -198,3 +200,71 @@ def test_the_launcher_warns_once_a_count_grows_and_not_more_often_than_its_perio
                    "quarantined": "actor-0"}, now=41.0)
     assert line == ("40 chunks or unrolls rejected (obs_bounds 39, spec 1); quarantined: actor-0 "
                     "(logs/replay*.log, logs/learner.log)")
+
+
+class Shapeshifter(gym.Env):
+    """Declares ``space``; every observation is ``make(t)`` (t: steps since reset, 0 at reset)."""
+
+    def __init__(self, space=None, make=None) -> None:
+        self.observation_space = space
+        self.action_space = gym.spaces.Discrete(2)
+        self.make, self.t = make, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self.make(0), {}
+
+    def step(self, action):
+        self.t += 1
+        return self.make(self.t), 0.0, False, False, {}
+
+
+if "test/Shapeshifter-v0" not in gym.registry:
+    # without gymnasium's passive checker, which asserts on a Dict's keys at the first reset only
+    gym.register("test/Shapeshifter-v0", entry_point=Shapeshifter, disable_env_checker=True)
+
+
+def shifter(space, make, n=2) -> EnvBatch:
+    return EnvBatch(EnvConfig(id="test/Shapeshifter-v0", kwargs={"space": space, "make": make}), n, seed=0,
+                    limits=EnvLimits(1e3, "replay.max_abs_reward", True))
+
+
+BOX = gym.spaces.Box(-5.0, 5.0, (4,), np.float32)
+
+
+def test_numbers_of_another_kind_are_cast_to_the_spaces_dtype():
+    envs = shifter(BOX, lambda t: np.array([t, 0, -1, 2]))  # int64 for a float32 Box: the replay refused each chunk
+    assert envs.reset()["obs"].dtype == np.float32
+    res = envs.step(np.zeros(2, np.int64))
+    assert res.next_obs["obs"].dtype == np.float32 and res.next_obs["obs"][0].tolist() == [1.0, 0.0, -1.0, 2.0]
+    cells = shifter(gym.spaces.Discrete(5), lambda t: np.int32(t % 5))
+    assert cells.reset()["obs"].dtype == np.int64 and cells.step(np.zeros(2, np.int64)).obs["obs"].tolist() == [1, 1]
+
+
+@pytest.mark.parametrize("space, make, says", [
+    (BOX, lambda t: np.zeros(5, np.float32), "gave observation obs of shape (5,); its observation_space says (4,)"),
+    (gym.spaces.Box(0, 255, (8, 8, 3), np.uint8), lambda t: np.random.rand(8, 8, 3),
+     "gave observation obs as floats; its observation_space says uint8"),
+    (gym.spaces.Discrete(3), lambda t: 1.5, "gave observation obs as floats; its observation_space says int64"),
+    (gym.spaces.Dict({"a": BOX}), lambda t: {"a": np.zeros(4, np.float32), "b": np.zeros(1, np.float32)},
+     "gave observation obs/b, which its observation_space does not have"),
+    (gym.spaces.Dict({"a": BOX, "b": BOX}), lambda t: {"a": np.zeros(4, np.float32)}, "gave no observation obs/b"),
+])
+def test_an_observation_unlike_its_space_stops_the_actor_naming_the_field(space, make, says):
+    with pytest.raises(EnvOutputError, match=re.escape(f"env test/Shapeshifter-v0 {says}")):
+        shifter(space, make).reset()
+
+
+def test_observations_of_different_shapes_stop_the_actor():
+    envs = shifter(BOX, lambda t: np.zeros(4 if t < 2 else 3 + t % 2, np.float32), n=1)
+    envs.reset()
+    envs.step(np.zeros(1, np.int64))
+    with pytest.raises(EnvOutputError, match=r"gave observation obs of shape \(3,\)"):
+        envs.step(np.zeros(1, np.int64))
+    ragged = EnvBatch(EnvConfig(id="test/Shapeshifter-v0", kwargs={"space": BOX, "make": lambda t: np.zeros(4, np.float32)}),
+                      2, seed=0)
+    ragged.reset()
+    ragged.envs[1].unwrapped.make = lambda t: np.zeros(3, np.float32)
+    with pytest.raises(EnvOutputError, match="gave observations of different shapes"):
+        ragged.step(np.zeros(2, np.int64))

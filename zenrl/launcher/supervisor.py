@@ -22,7 +22,9 @@ import yaml
 
 from zenrl import EXIT_CONFIG
 from zenrl.common.config import RunConfig
-from zenrl.common.errors import ConfigError
+from zenrl.common.errors import ConfigError, EnvOutputError
+from zenrl.actor.batch_env import stack_flat
+from zenrl.actor.env_guard import EnvGuard
 from zenrl.launcher.display import ENV_TROUBLES, Progress, TroubleWatch, render_table
 from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
                                       read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
@@ -91,9 +93,13 @@ def check_env(cfg: RunConfig) -> None:
     try:
         action_size(env.action_space, cfg.algo)
         obs_spec(env.observation_space)
-        env.reset(seed=cfg.seed)
+        obs, _ = env.reset(seed=cfg.seed)
+        # what the actors will check of every observation: before any child starts
+        EnvGuard(cfg.env.id, env.observation_space).conform(stack_flat([obs]))
     except Exception as e:  # as above: the env's code, not ours
         env.close()
+        if isinstance(e, EnvOutputError):  # names the env already
+            raise ConfigError(_first_line(str(e))) from None
         raise ConfigError(f"{where}: {_first_line(str(e)) or type(e).__name__}") from None
     try:
         check_opponents(cfg, env)  # every opponents.pool file loads and fits the env, before any child starts
