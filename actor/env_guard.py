@@ -156,9 +156,10 @@ class _Field:
         below, above = a < self.low, a > self.high
         if not (below.any() or above.any()):
             return value, None
-        where = "below" if below.any() else "above"
         i = int(np.flatnonzero((below | above).reshape(-1))[0])
-        v, b = a.reshape(-1)[i], (self.low if below.any() else self.high).reshape(-1)[i]
+        low_side = bool(below.reshape(-1)[i])
+        where = "below" if low_side else "above"
+        v, b = a.reshape(-1)[i], (self.low if low_side else self.high).reshape(-1)[i]
         fixed = np.clip(a, self.low, self.high).astype(a.dtype)
         return fixed, f"observation {self.name}[{i}] = {float(v):.6g} is {where} the env's bound {float(b):.6g}"
 
@@ -267,11 +268,12 @@ class EnvGuard:
             for p in path[:-1]:
                 parent = parent[p]
             v, why = f.fix(parent[path[-1]])
-            if why:
-                notes.append(why)
-            if v is None:
+            if v is None:  # what cannot be fixed is named first
                 broken = True
+                notes.insert(0, why)
             else:
+                if why:
+                    notes.append(why)
                 parent[path[-1]] = v
         return out, notes, broken
 

@@ -268,3 +268,15 @@ def test_observations_of_different_shapes_stop_the_actor():
     ragged.envs[1].unwrapped.make = lambda t: np.zeros(3, np.float32)
     with pytest.raises(EnvOutputError, match="gave observations of different shapes"):
         ragged.step(np.zeros(2, np.int64))
+
+
+def test_what_is_wrong_is_named_by_its_own_side_and_nan_first():
+    space = gym.spaces.Dict({"a": gym.spaces.Box(-1.0, 1.0, (3,), np.float32), "b": gym.spaces.Box(-1.0, 1.0, (1,), np.float32)})
+    g = EnvGuard("x", space, EnvLimits(None, "", True))
+    fixed, notes, broken = g.fix({"a": np.array([2.0, 0.0, -3.0], np.float32), "b": np.array([0.5], np.float32)})
+    assert not broken and notes == ["observation obs/a[0] = 2 is above the env's bound 1"]
+    np.testing.assert_array_equal(fixed["a"], f32(1.0, 0.0, -1.0))
+    _, notes, _ = g.fix({"a": np.array([0.0, 0.0, -3.0], np.float32), "b": np.array([0.5], np.float32)})
+    assert notes == ["observation obs/a[2] = -3 is below the env's bound -1"]
+    _, notes, broken = g.fix({"a": np.array([2.0, 0.0, 0.0], np.float32), "b": np.array([np.nan], np.float32)})
+    assert broken and notes[0] == "observation obs/b holds NaN or Inf"
