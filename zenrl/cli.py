@@ -8,6 +8,7 @@ and ``zenrl config --list`` every option with its default and description.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import re
@@ -168,6 +169,12 @@ def _run_role(args: argparse.Namespace, role: str, fn: Callable[[RunConfig, str,
     from zenrl.identity import check_dev_credentials
 
     setup_logging(args.log_level, role)
+    # SIGUSR1 writes every thread's stack to stderr (the child's log under `zenrl run`): where a
+    # stuck process is, before the launcher restarts it
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (AttributeError, ValueError, OSError):  # a stderr without a file descriptor (embedded, tests)
+        pass
     placed = apply_from_env()  # before any thread starts, so that every thread inherits it
     if placed is not None:
         log.info("cpu placement: CPUs %s, nice +%d", placed.cpus, placed.nice)

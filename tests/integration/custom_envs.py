@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import time
+
 import gymnasium as gym
 import numpy as np
 
@@ -19,12 +21,14 @@ class IntWalkEnv(gym.Env):
     ``goal_reward``) and ends the episode; 50 steps at most. A faulty env on request: every
     ``nan_every``-th step of the env gives a NaN reward, every ``over_every``-th an observation
     whose step count (150) is above its bound (100); with ``obs_size`` another number of
-    observation values than its space's 2."""
+    observation values than its space's 2; with ``hang_after_s`` the env reset with seed
+    ``hang_seed`` never returns from its first step that many seconds after it was made (a
+    simulator that hangs)."""
 
     metadata = {"render_modes": ["rgb_array"]}  # claimed, not drawn: render() is gym.Env's
 
     def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0,
-                 render_mode: str | None = None, obs_size: int = 2) -> None:
+                 render_mode: str | None = None, obs_size: int = 2, hang_after_s: float = 0.0, hang_seed: int = -1) -> None:
         self.render_mode = render_mode
         self.dt = np.dtype(dtype)
         self.observation_space = gym.spaces.Box(0, 100, (2,), self.dt)
@@ -32,6 +36,8 @@ class IntWalkEnv(gym.Env):
         self.pos = self.t = 0
         self.nan_every, self.over_every, self.goal_reward = nan_every, over_every, goal_reward
         self.obs_size = obs_size
+        self.hang_after_s, self.hang_seed, self.seeded = hang_after_s, hang_seed, None
+        self.made = time.monotonic()
         self.steps = 0
 
     def _obs(self) -> np.ndarray:
@@ -39,6 +45,8 @@ class IntWalkEnv(gym.Env):
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
+        if seed is not None:
+            self.seeded = seed
         self.pos = self.t = 0
         return self._obs(), {}
 
@@ -46,6 +54,8 @@ class IntWalkEnv(gym.Env):
         self.pos = min(9, max(0, self.pos + (1 if int(action) == 1 else -1)))
         self.t += 1
         self.steps += 1
+        if self.hang_after_s and self.seeded == self.hang_seed and time.monotonic() - self.made > self.hang_after_s:
+            time.sleep(1e6)
         done = self.pos == 9
         obs, reward = self._obs(), self.goal_reward if done else 0.0
         if self.over_every and self.steps % self.over_every == 0:

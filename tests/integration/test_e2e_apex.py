@@ -150,3 +150,24 @@ def test_a_reward_beyond_the_runs_bound_stops_the_run_at_once_naming_the_setting
     assert "failed on its configuration" in summary["stop_reason"], summary["stop_reason"]
     assert summary["replay"].get("rejected_total", 0) == 0
     assert not _leftovers(run_id), _leftovers(run_id)
+
+
+def test_an_actor_stuck_in_its_env_is_restarted_with_its_stack_in_its_log(tmp_path, run_id, monkeypatch):
+    """The int walk never returning from one env's step 4 s after it was made (slot 0's first env,
+    seed 10000, so the actor has reported first):
+    the actor's role loop publishes nothing while it waits. ``zenrl run`` notices the silence
+    after actor.silent_restart_s, has the actor write its threads' stacks to its log (the env's
+    step among them) and restarts it, as a cluster's health check would; before, the run sat
+    with 0 env steps/s, said nothing, and killed the actor only at the end."""
+    _user_envs(tmp_path, monkeypatch)
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "env.id=user_envs:IntWalk-v0",
+                                 "env.kwargs={hang_after_s: 4, hang_seed: 10000}", "actor.num_actors=1",
+                                 "actor.silent_restart_s=3", "target_return=null", "max_wall_s=25", timeout_s=300)
+    assert p.returncode == 0, (p.returncode, p.stderr[-3000:])
+    assert "actor-0 has published no stats for" in p.stderr and "restarting it" in p.stderr, p.stderr[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["restarts"]["actor-0"] >= 1, summary["restarts"]
+    log = (run_dir / "logs" / "actor-0.log").read_text()
+    assert "most recent call first" in log and "user_envs.py" in log and "in step" in log, log[-3000:]
+    assert summary["restarts"].get("learner", 0) == 0 and summary["restarts"].get("replay", 0) == 0
+    assert not _leftovers(run_id), _leftovers(run_id)

@@ -35,6 +35,8 @@ class Progress:
     league: dict[str, Any] = field(default_factory=dict)
     #: each actor's counts of its envs' problems (``env_steps_cut``, ...: zenrl.actor.env_guard)
     actor_env: dict[str, dict[str, int]] = field(default_factory=dict)
+    #: monotonic time of each actor's last stats (the launcher restarts one that falls silent)
+    actor_seen: dict[str, float] = field(default_factory=dict)
     evals: list[dict[str, Any]] = field(default_factory=list)
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
@@ -66,6 +68,7 @@ class Progress:
         with self.lock:
             if isinstance(msg, P.Stats):
                 if msg.role == "actor":
+                    self.actor_seen[msg.id] = time.monotonic()
                     self._actor(msg.id, int(msg.values.get("env_steps", 0)))
                     env = {k: int(v) for k, v in msg.values.items() if k in ENV_TROUBLES and isinstance(v, (int, float))}
                     if env:

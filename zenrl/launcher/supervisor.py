@@ -118,6 +118,8 @@ class Child:
     #: a league agent's process: its own config file and run id (default: the run's)
     config: Path | None = None
     run_id: str | None = None
+    #: why the launcher killed it (a silent actor), said when it is restarted; None otherwise
+    killed_for: str | None = None
     #: the league agent it belongs to
     agent: str | None = None
 
@@ -264,7 +266,8 @@ class Launcher:
             if c.proc is None or c.proc.poll() is None or self.stop.is_set():
                 continue
             rc = c.proc.returncode
-            why = last_error_line(c.log_path) or "(empty log)"
+            why = c.killed_for or last_error_line(c.log_path) or "(empty log)"
+            c.killed_for = None
             if rc == EXIT_CONFIG:
                 log.error("%s stopped on a configuration error (not restarted): %s  [log %s]", c.name, why, c.log_path)
                 self._stop_with(f"{c.name} failed on its configuration: {why}", 2)
@@ -279,6 +282,31 @@ class Launcher:
                         self.max_restarts, c.log_path)
             self._spawn(c, ["--auto-resume"] if c.role == "learner" and not {"--resume", "--auto-resume"} & set(c.args)
                         else None)
+
+    def _restart_silent(self, now: float | None = None) -> None:
+        """An actor that has published stats and then none for ``actor.silent_restart_s`` while its
+        process runs is stuck (an env's step or reset that never returns: its role loop publishes
+        nothing while it waits). Its threads' stacks go to its log (SIGUSR1: faulthandler), then it
+        is killed; :meth:`_supervise` restarts it, as it restarts a child that died."""
+        if self.stop.is_set():
+            return
+        now = time.monotonic() if now is None else now
+        limit = self.cfg.actor.silent_restart_s
+        seen = self.progress.actor_seen
+        for c in self.children:
+            last = seen.get(c.name)
+            if c.role != "actor" or c.proc is None or c.proc.poll() is not None or last is None or now - last < limit:
+                continue
+            seen.pop(c.name, None)  # until the restarted process reports
+            c.killed_for = f"killed by the launcher: no stats for {now - last:.0f} s, stuck"
+            log.warning("%s has published no stats for %.0f s although its process runs: stuck (in its env's step or "
+                        "reset?). Its threads' stacks go to %s; restarting it", c.name, now - last, c.log_path)
+            try:
+                c.proc.send_signal(signal.SIGUSR1)
+                time.sleep(0.5)  # faulthandler writes from a signal handler: a moment
+            finally:
+                c.proc.kill()
+                c.proc.wait()
 
     def _terminate(self, children: list[Child] | None = None, grace_s: float = 20.0) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
@@ -415,6 +443,7 @@ class Launcher:
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
+                self._restart_silent()
                 self._apply_resets()
                 self._check_done()
                 if live is not None:
