@@ -280,3 +280,18 @@ def test_what_is_wrong_is_named_by_its_own_side_and_nan_first():
     assert notes == ["observation obs/a[2] = -3 is below the env's bound -1"]
     _, notes, broken = g.fix({"a": np.array([2.0, 0.0, 0.0], np.float32), "b": np.array([np.nan], np.float32)})
     assert broken and notes[0] == "observation obs/b holds NaN or Inf"
+
+
+def test_the_launcher_says_once_when_no_episode_ends():
+    from zenrl.launcher.display import Progress, endless_warning
+
+    p = Progress()
+    assert endless_warning(p, "x", now=1e9) is None  # no env step yet
+    p.first_step_t = 100.0
+    p.actor_steps["actor-0"] = 12345
+    assert endless_warning(p, "x", now=150.0) is None  # not long enough
+    line = endless_warning(p, "my:Env-v0", now=170.0)
+    assert line == ("no episode has ended in 70 s (12,345 env steps): my:Env-v0's episodes may never end (no step "
+                    "limit), and then no return is reported and no evaluation finishes; set env.max_episode_steps")
+    p.recent_returns.append(3.0)
+    assert endless_warning(p, "x", now=170.0) is None

@@ -191,6 +191,24 @@ class TroubleWatch:
         return line
 
 
+#: a run whose actors have stepped this long without one episode ending is told so, once
+ENDLESS_AFTER_S = 60.0
+
+
+def endless_warning(p: Progress, env_id: str, now: float | None = None, after_s: float = ENDLESS_AFTER_S) -> str | None:
+    """The line for a run whose envs have stepped for ``after_s`` since the first env step with no
+    episode ended (no training return, no evaluation): an env without a step limit whose episodes
+    need not end. None otherwise."""
+    now = time.monotonic() if now is None else now
+    with p.lock:
+        if p.first_step_t is None or now - p.first_step_t < after_s or p.recent_returns or p.evals:
+            return None
+        steps = p.env_steps
+    return (f"no episode has ended in {now - p.first_step_t:.0f} s ({steps:,} env steps): {env_id}'s episodes may "
+            "never end (no step limit), and then no return is reported and no evaluation finishes; set "
+            "env.max_episode_steps")
+
+
 def render_table(run_id: str, line: dict[str, Any], stop_reason: str = ""):
     """The live table of :meth:`Progress.status_line` (rates as rates, the win rate in %)."""
     from rich.table import Table

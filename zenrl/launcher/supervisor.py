@@ -25,7 +25,7 @@ from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError, EnvOutputError
 from zenrl.actor.batch_env import stack_flat
 from zenrl.actor.env_guard import EnvGuard
-from zenrl.launcher.display import ENV_TROUBLES, Progress, TroubleWatch, render_table
+from zenrl.launcher.display import ENV_TROUBLES, Progress, TroubleWatch, endless_warning, render_table
 from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
                                       read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
                                       write_launcher_info)
@@ -433,6 +433,7 @@ class Launcher:
                 live.start()
         last_progress = last_summary = time.monotonic()
         trouble = TroubleWatch()
+        endless_said = False
         try:
             while not self.stop.wait(0.5):
                 p = self.progress
@@ -440,6 +441,11 @@ class Launcher:
                 news = trouble.news(p.troubles())
                 if news:
                     log.warning("%s", news)
+                if not endless_said and not self.agents:
+                    line = endless_warning(p, self.cfg.env.id)
+                    if line:
+                        log.warning("%s", line)
+                        endless_said = True
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
