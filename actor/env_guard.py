@@ -16,7 +16,11 @@ in the service's log. :class:`EnvGuard` looks at each batched step first, with t
   are dropped), and the env is reset; a reset that gives NaN or Inf is retried (3 times, then
   :class:`~zenrl.common.errors.EnvOutputError`);
 * a finite observation outside the env's finite bounds, where the run's services check them, is
-  clipped to them.
+  clipped to them;
+* observations are put in the dtype their space names where nothing is lost (ints for a float
+  ``Box``); one of another shape, a missing or extra ``Dict`` key, or floats for a uint8 image or
+  a ``Discrete`` index stops the actor (``zenrl run`` checks the first reset the same way before
+  any process starts).
 
 Each is counted (``env_steps_cut``, ``env_obs_clipped``, ``env_resets_retried`` in the actor's
 stats) and logged at most once per 30 s per kind, naming the env and the field. The fast path is
