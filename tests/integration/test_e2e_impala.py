@@ -64,7 +64,9 @@ def _status_rows(run_dir):
 def test_zenrl_run_impala_learns_cartpole(tmp_path):
     run_id = f"e2e-impala-{uuid.uuid4().hex[:8]}"  # unique: another test session may run beside this one
     run_dir = tmp_path / run_id
-    launcher = _launch(tmp_path, run_id, "max_updates=500", "max_wall_s=600", "target_return=null",
+    # 1,500 updates: ~10 s of training, so that a `zenrl status` (an interpreter's start and a 3 s
+    # wait) on a loaded machine sees the run while it trains; with 500 the run once ended first
+    launcher = _launch(tmp_path, run_id, "max_updates=1500", "max_wall_s=600", "target_return=null",
                        "evaluator.interval_s=1")
     try:
         wait_until(lambda: (run_dir / "launcher.json").is_file() or launcher.poll() is not None, 60, "launcher.json")
@@ -72,10 +74,12 @@ def test_zenrl_run_impala_learns_cartpole(tmp_path):
         def training():
             rows = _status_rows(run_dir)
             ok = {"learner", "actor", "evaluator"} <= set(rows) and rows["learner"].get("updates", 0) > 0
-            return rows if ok or launcher.poll() is not None else None
+            if ok:
+                return rows
+            return {"ended": True} if launcher.poll() is not None else None  # fails below, saying so
 
         rows = wait_until(training, 180, "every role in zenrl status, the learner training")
-        assert launcher.poll() is None or rows, "the run ended before zenrl status saw it"
+        assert "ended" not in rows, "the run ended before zenrl status saw it train"
     finally:
         out = _finish(launcher)
     assert launcher.returncode == 0, out[-3000:]

@@ -25,8 +25,9 @@ def test_cartpole_solves_and_the_learner_keeps_stepping_with_in_bounds_poison(tm
                             "--run-id", run_id, "--no-progress", "--set", f"runs_dir={tmp_path}",
                             "--set", f"transport.listen=[{ep}]", "--set", "max_wall_s=300",
                             # a fixed budget, not a stop at the solve: a run that solves before the
-                            # hostile process is up (a loaded machine) would test nothing
-                            "--set", "target_return=null", "--set", "max_updates=3000"],
+                            # hostile process is up (a loaded machine) would test nothing; 6,000
+                            # updates: 3,000 once ended one eval short of the solve (474.7)
+                            "--set", "target_return=null", "--set", "max_updates=6000"],
                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     hostile = subprocess.Popen([sys.executable, "tests/integration/procs.py", "inbounds", "--router", ep, "--run", run_id,
                                 "--fraction", "0.01"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
