@@ -5,14 +5,11 @@ the networks, and an exported policy (keyed by path, ``{"arm/joints": ...}``).""
 
 from __future__ import annotations
 
-import json
-import warnings
-
 import numpy as np
 import torch
 
 from tests.integration import custom_envs  # noqa: F401  (registers NestedDict-v0)
-from tests.unit.test_tools import make_checkpoint
+from tests.unit.test_tools import load_exported, make_checkpoint
 from zenrl import tools
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.common.config import EnvConfig
@@ -60,11 +57,8 @@ def test_export_takes_paths_and_the_player_takes_the_nested_observation(tmp_path
     observations = [env.observation_space.sample() for _ in range(64)]
     ref = [int(policy.batch(single_to_flat(o))[0]) for o in observations]
     assert len(set(ref)) > 1  # the comparison is not trivially constant
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        extra = {"zenrl.json": ""}
-        ts = torch.jit.load(str(out), _extra_files=extra)
-    assert json.loads(extra["zenrl.json"])["inputs"]["arm/joints"] == {"shape": [3], "dtype": "float32"}
+    ts, meta_in_file = load_exported(out)
+    assert meta_in_file["inputs"]["arm/joints"] == {"shape": [3], "dtype": "float32"}
     by_path = [{"arm/joints": torch.as_tensor(o["arm"]["joints"]), "arm/grip": torch.as_tensor(o["arm"]["grip"]),
                 "cell": torch.as_tensor(np.int64(o["cell"]))} for o in observations]
     assert [int(ts(x)) for x in by_path] == ref

@@ -4,16 +4,13 @@ env gets ``start + index``; an exported policy returns the env's own action."""
 
 from __future__ import annotations
 
-import json
-import warnings
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from tests.integration import custom_envs  # noqa: F401  (registers ShiftWalk-v0)
-from tests.unit.test_tools import make_checkpoint
+from tests.unit.test_tools import load_exported, make_checkpoint
 from zenrl import tools
 from zenrl.actor.batch_env import EnvBatch
 from zenrl.common.config import EnvConfig
@@ -63,11 +60,8 @@ def test_export_returns_the_envs_action_and_the_player_the_index(tmp_path):
     observations = [np.array([x], np.float32) for x in np.linspace(-5, 5, 41)]
     index = [int(policy.batch(single_to_flat(o))[0]) for o in observations]
     assert len(set(index)) > 1  # the comparison is not trivially constant
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        extra = {"zenrl.json": ""}
-        ts = torch.jit.load(str(out), _extra_files=extra)
-    assert json.loads(extra["zenrl.json"])["action_start"] == -1
+    ts, meta_in_file = load_exported(out)
+    assert meta_in_file["action_start"] == -1
     assert [int(ts(torch.as_tensor(o))) for o in observations] == [i - 1 for i in index]
     player = ExportedPlayer(out)
     player.check_spaces(env.observation_space, env.action_space)

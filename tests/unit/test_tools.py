@@ -69,6 +69,16 @@ def ckpts(tmp_path_factory):
             "a3c": make_checkpoint(d / "a3c", "CartPole-v1", {}, algo="a3c")}
 
 
+def load_exported(path: Path) -> tuple[torch.jit.ScriptModule, dict]:
+    """A `zenrl export` file as a bare `torch.jit.load` reads it (no zenrl): the program and its
+    zenrl.json."""
+    extra = {"zenrl.json": ""}
+    with warnings.catch_warnings():  # torch 2.13 deprecates TorchScript (it still loads)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        program = torch.jit.load(str(path), _extra_files=extra)
+    return program, json.loads(extra["zenrl.json"])
+
+
 def png_size(path: Path) -> tuple[int, int]:
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
@@ -616,11 +626,7 @@ def test_the_guard_turns_towards_a_near_robot_off_the_heading_and_else_lets_the_
                 own_used.add(own)
     assert len(own_used - {RICH_LEFT, RICH_RIGHT}) > 0  # the pass-through cases are not turns by chance
     # the same program loads without zenrl and its zenrl.json describes the guard
-    extra = {"zenrl.json": ""}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        ts = torch.jit.load(str(out), _extra_files=extra)
-    j = json.loads(extra["zenrl.json"])
+    ts, j = load_exported(out)
     assert j["guard"]["turn_left"] == RICH_LEFT and "guarded" in j["call"]
     assert int(ts(_as_tensors(_with_enemy(base[0], 1.0, 0.0, 0.5)))) == RICH_LEFT
 
