@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
+from zenrl.actor.env_guard import reward_number
 from zenrl.common.errors import ZenrlError
 from zenrl.common.ratings import PairRecord, fit_ratings
 from zenrl.games.burgerwar.judge import match_outcome, robot_marker_points
@@ -115,7 +116,7 @@ class EpisodeRunner:
         ret, n, done = 0.0, 0, False
         while not done:
             obs, r, term, trunc, info = self.env.step(self.policy(obs))
-            ret += float(r)
+            ret += r if type(r) is float else reward_number(r, self.env.spec.id if self.env.spec else "this env")
             n += 1
             done = term or trunc
         res = EpisodeResult(job.index, job.seed, job.opponent, job.side, ret, n)

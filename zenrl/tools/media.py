@@ -10,6 +10,7 @@ from typing import Any, Mapping, Sequence
 import gymnasium as gym
 import numpy as np
 
+from zenrl.actor.env_guard import reward_number
 from zenrl.common.errors import ZenrlError
 from zenrl.common.policy_io import GreedyPolicy
 from zenrl.tools.loading import is_match_env, load_policy_env, need, resolve_checkpoint
@@ -73,7 +74,7 @@ def record_episode(policy: GreedyPolicy, env: gym.Env, seed: int, options: Mappi
     frames = [frame()]
     while not done and (max_steps is None or n < max_steps):
         obs, r, term, trunc, info = env.step(policy(obs))
-        ret += float(r)
+        ret += reward_number(r, name)
         n += 1
         done = term or trunc
         frames.append(frame())
