@@ -25,6 +25,8 @@ pytestmark = pytest.mark.integration
 
 CONFIG = "configs/cartpole_apex.yaml"
 ZENOH_NOISE = re.compile(r"\bWARN\b|\.rs:\d+")
+#: the bound on a command run beside a busy run (see test_status_ctrl_c_and_resume)
+BUSY_TIMEOUT_S = 180
 
 
 def zenrl(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
@@ -92,7 +94,8 @@ def _status_json(run_dir) -> dict:
 
 def test_status_ctrl_c_and_resume(tmp_path, run_id):
     run_dir = tmp_path / run_id
-    cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=120",
+    # max_wall_s: a safety net only (the test stops the run with Ctrl-C), longer than every wait below
+    cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=900",
                                                           "evaluator.interval_s=1")]
     # a process group of its own (not a session: the kernel's autogroups would schedule the run
     # apart from the status commands below): Ctrl-C is sent to the whole group, as a terminal does
@@ -112,20 +115,22 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
         actor = rows["actor"]
         assert actor["rate_unit"] == "env steps/s" and 0 < actor["rate"] < actor["env_steps"], actor
         assert rows["learner"]["rate_unit"] == "updates/s" and rows["learner"]["rate"] > 0
-        table = zenrl("status", str(run_dir), "--wait", "2", timeout_s=60)
+        # commands beside a run at full speed on 2 cores take ~3 s; the timeouts are generous because
+        # twice in CI one of them (or the test process itself) stood still for about a minute
+        table = zenrl("status", str(run_dir), "--wait", "2", timeout_s=BUSY_TIMEOUT_S)
         assert table.returncode == 0 and not ZENOH_NOISE.search(table.stdout + table.stderr), table.stderr
         for role in ("replay", "learner", "actor", "evaluator"):
             assert role in table.stdout
         assert "env steps/s" in table.stdout and "return" in table.stdout, table.stdout
         # a second launcher on the same folder while it runs: refused at once, the run untouched
         for again in (["run", "--resume", str(run_dir), "--no-progress"], [*run_args(tmp_path, run_id), "--no-progress"]):
-            p = zenrl(*again, timeout_s=60)
+            p = zenrl(*again, timeout_s=BUSY_TIMEOUT_S)
             assert p.returncode == 2 and "is in use by another zenrl run (launcher pid" in p.stderr, p.stderr[-2000:]
         assert launcher.poll() is None and (run_dir / "launcher.json").is_file()
         # what Ctrl-C sends: SIGINT to every process of the group; the launcher forwards SIGTERM too,
         # so each child gets two signals at once (which once deadlocked a child's stop handler)
         os.killpg(launcher.pid, signal.SIGINT)
-        out, _ = launcher.communicate(timeout=90)
+        out, _ = launcher.communicate(timeout=BUSY_TIMEOUT_S)
     finally:
         if launcher.poll() is None:
             launcher.kill()
