@@ -149,15 +149,13 @@ class EnvBatch:
             fixed, notes, broken = g.fix(nxt[i])
             if broken or not math.isfinite(raw[i]):
                 what = notes[0] if broken else f"reward {raw[i]}"
-                g.steps_cut += 1
-                g.note("cut", f"{what} (env {i} of the batch); the episode is cut there: truncated, that step "
+                g.note("steps_cut", f"{what} (env {i} of the batch); the episode is cut there: truncated, that step "
                               "dropped (counted as env_steps_cut)")
                 nxt[i] = self._obs[i]
                 rew[i], raw[i] = 0.0, 0.0
                 term[i], trunc[i] = False, True
             elif notes:
-                g.obs_clipped += 1
-                g.note("clip", f"{notes[0]} (env {i} of the batch); clipped to the bounds (counted as env_obs_clipped; "
+                g.note("obs_clipped", f"{notes[0]} (env {i} of the batch); clipped to the bounds (counted as env_obs_clipped; "
                                f"fix the env's observation_space, or set {g.limits.bounds_setting or 'the bound checks'}=false)")
                 nxt[i] = fixed
         return self._stacked(nxt)
@@ -179,12 +177,10 @@ class EnvBatch:
                 if attempt == RESET_RETRIES:
                     raise EnvOutputError(f"env {g.env_id}'s reset gave an observation with NaN or Inf "
                                          f"{RESET_RETRIES + 1} times in a row ({notes[0]})")
-                g.resets_retried += 1
-                g.note("reset", f"{notes[0]} after a reset (env {i} of the batch); reset again (counted as env_resets_retried)")
+                g.note("resets_retried", f"{notes[0]} after a reset (env {i} of the batch); reset again (counted as env_resets_retried)")
                 self._obs[i], _ = self.envs[i].reset()
             if notes:
-                g.obs_clipped += 1
-                g.note("clip", f"{notes[0]} after a reset (env {i} of the batch); clipped to the bounds (counted as "
+                g.note("obs_clipped", f"{notes[0]} after a reset (env {i} of the batch); clipped to the bounds (counted as "
                                "env_obs_clipped)")
                 self._obs[i] = fixed
         return self._stacked(self._obs)

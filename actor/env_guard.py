@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
 from zenrl.common.errors import EnvOutputError
+from zenrl.common.metrics import RejectCounter
 from zenrl.common.specs import SEP, obs_rules_from_space
 
 log = logging.getLogger(__name__)
@@ -185,9 +185,9 @@ class EnvGuard:
         #: rewards inside this range need no look (the run's bound, or the largest finite floats)
         big = float(np.finfo(np.float64).max)
         self.reward_range = (-big, big) if self.bound is None else (-self.bound, self.bound)
-        self.steps_cut = self.obs_clipped = self.resets_retried = 0
-        self._logged: dict[str, float] = {}
-        self._unlogged: dict[str, int] = {}
+        #: counts by kind (``steps_cut``, ``obs_clipped``, ``resets_retried``), each logged at most
+        #: once per LOG_EVERY_S with the count of the rest
+        self.fixes = RejectCounter(log, f"output of env {env_id}", LOG_EVERY_S, verb="fixed")
 
     # -- rewards ---------------------------------------------------------------------------------
     def reward(self, r: Any) -> float:
@@ -282,19 +282,13 @@ class EnvGuard:
         return out, notes, broken
 
     def note(self, kind: str, what: str) -> None:
-        """Log ``what`` (a problem of kind ``kind``) at most once per :data:`LOG_EVERY_S`."""
-        now = time.monotonic()
-        last = self._logged.get(kind)
-        if last is not None and now - last < LOG_EVERY_S:
-            self._unlogged[kind] = self._unlogged.get(kind, 0) + 1
-            return
-        more = self._unlogged.pop(kind, 0)
-        self._logged[kind] = now
-        log.warning("env %s: %s%s", self.env_id, what, f" (+{more} more since the last such line)" if more else "")
+        """Count a problem of ``kind`` (``steps_cut``, ``obs_clipped``, ``resets_retried``) and log
+        ``what`` (at most once per :data:`LOG_EVERY_S` per kind, the rest counted)."""
+        self.fixes.reject(kind, what)
 
     def values(self) -> dict[str, int]:
-        return {"env_steps_cut": self.steps_cut, "env_obs_clipped": self.obs_clipped,
-                "env_resets_retried": self.resets_retried}
+        c = self.fixes.counts
+        return {f"env_{k}": c[k] for k in ("steps_cut", "obs_clipped", "resets_retried")}
 
 
 def _copy_tree(obs: Any) -> Any:

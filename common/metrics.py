@@ -40,10 +40,11 @@ class RejectCounter:
     """Counts rejected inputs by reason and logs them without flooding: the first rejection of
     each reason is logged at once, later ones at most once per ``log_every_s`` with a count."""
 
-    def __init__(self, logger: logging.Logger, what: str, log_every_s: float = 10.0) -> None:
+    def __init__(self, logger: logging.Logger, what: str, log_every_s: float = 10.0, verb: str = "rejected") -> None:
         self.counts: Counter[str] = Counter()
         self._log = logger
         self._what = what
+        self._verb = verb  # the log line's first word (an actor's env checks fix what they count)
         self._every = log_every_s
         self._last: dict[str, float] = {}
         self._unlogged: Counter[str] = Counter()
@@ -55,7 +56,8 @@ class RejectCounter:
             now = time.monotonic()
             if now - self._last.get(reason, -1e18) >= self._every:
                 extra = f" (+{self._unlogged[reason]} more since last report)" if self._unlogged[reason] else ""
-                self._log.warning("rejected %s%s [%s]: %s%s", self._what, f" from {source}" if source else "", reason, detail, extra)
+                self._log.warning("%s %s%s [%s]: %s%s", self._verb, self._what, f" from {source}" if source else "", reason,
+                                  detail, extra)
                 self._last[reason] = now
                 self._unlogged[reason] = 0
             else:
