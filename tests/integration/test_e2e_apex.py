@@ -108,8 +108,10 @@ def test_zenrl_run_takes_an_env_with_integer_observations(tmp_path, run_id, monk
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"].startswith("max_updates"), (summary["stop_reason"], logs.get("replay.log"))
     assert summary["replay"]["rejected_total"] == 0, summary["replay"]
-    assert summary["learner"]["updates"] >= 300
-    assert max(e["mean"] for e in summary["evals"]) == 1.0  # the walk to 9 within 50 steps
+    assert summary["learner"]["updates"] >= 300 and summary["replay"]["inserted_total"] >= 5000, summary
+    # No evaluation is asserted: "always right" walks to 9, so a greedy policy solves the walk or
+    # not whatever it saw (in CI a policy that had solved it at 0 updates failed at 300).
+    assert all(summary["learner"][k] == 0 for k in ("skipped_updates", "poisoned_items", "errors_total")), summary["learner"]
     assert not _leftovers(run_id), _leftovers(run_id)
 
 
@@ -117,13 +119,13 @@ def test_an_honest_actor_whose_env_misbehaves_sends_nothing_the_replay_rejects(t
     """The int walk giving a NaN reward every 97th step and a step count of 150 (its bound 100)
     every 89th: the actors cut the NaN steps and clip the counts (EnvGuard), the replay rejects
     nothing and quarantines no one (before: whole chunks rejected, both actors quarantined, said
-    only in the replay's log), the launcher's terminal says what happened, and the walk is learned."""
+    only in the replay's log), the launcher's terminal says what happened, and the learner trains
+    on finite numbers."""
     _user_envs(tmp_path, monkeypatch)
     env = "env.id=user_envs:IntWalk-v0"
     p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, env,
                                  "env.kwargs={nan_every: 97, over_every: 89}", "target_return=null",
-                                 # 1,500 updates: with 300 the walk was learned in 3 runs of 5
-                                 "max_updates=1500", "max_wall_s=240", "evaluator.interval_s=1", timeout_s=420)
+                                 "max_updates=500", "max_wall_s=240", timeout_s=420)
     assert p.returncode == 0, (p.stderr[-3000:], logs)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"].startswith("max_updates"), (summary["stop_reason"], logs.get("replay.log"))
@@ -132,7 +134,7 @@ def test_an_honest_actor_whose_env_misbehaves_sends_nothing_the_replay_rejects(t
     assert troubles["env_steps_cut"] > 0 and troubles["env_obs_clipped"] > 0, troubles
     assert "the actors' envs misbehave:" in p.stderr and "steps cut for NaN or Inf" in p.stderr, p.stderr[-3000:]
     assert "reward nan" in logs["actor-0.log"] and "observation obs[1] = 150 is above the env's bound 100" in logs["actor-0.log"]
-    assert max(e["mean"] for e in summary["evals"]) == 1.0
+    assert all(summary["learner"][k] == 0 for k in ("skipped_updates", "poisoned_items", "errors_total")), summary["learner"]
     assert not _leftovers(run_id), _leftovers(run_id)
 
 
