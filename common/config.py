@@ -107,7 +107,7 @@ class ActorConfig(_Section):
     ladder_size: Optional[int] = Field(None, ge=1, description="N of the epsilon ladder (default: num_actors).")
     weights_poll_steps: int = Field(1, ge=1, description="Check for new weights every this many batched steps.")
     episode_report_s: float = Field(1.0, gt=0, description="How often finished-episode statistics are published.")
-    silent_restart_s: float = Field(60.0, gt=0, description="zenrl run: an actor that has published stats and then publishes none for this long while its process runs (stuck, e.g. in its env's step or reset) gets its threads' stacks written to its log and is restarted, as a container health check (zenrl.health --stats-within-s) restarts it in a cluster.")
+    silent_restart_s: float = Field(60.0, gt=0, description="zenrl run: an actor that has published stats and then publishes none for this long while its process runs (stuck, e.g. in its env's step or reset) gets its threads' stacks written to its log and is restarted, as a container health check (zenrl.health --stats-within-s) restarts it in a cluster. One that has published nothing this long after it started is named once, with its stacks in its log, and left running (a slow start looks the same).")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads and numpy BLAS threads in each actor.")
     max_steps_per_s: Optional[float] = Field(None, gt=0, description="Cap on each actor's env steps per second (all its envs), leaving CPU to the learner on small machines; none by default.")
     frames: bool = Field(True, description="Image envs (any uint8 observation of 2+ dims): send each observation frame once with frame ids (docs/protocol.md) instead of obs/next_obs arrays; false sends full arrays.")

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import time
 
 import gymnasium as gym
@@ -23,12 +24,19 @@ class IntWalkEnv(gym.Env):
     whose step count (150) is above its bound (100); with ``obs_size`` another number of
     observation values than its space's 2; with ``hang_after_s`` the env reset with seed
     ``hang_seed`` never returns from its first step that many seconds after it was made (a
-    simulator that hangs)."""
+    simulator that hangs); with ``one_client`` (a file path) the env is made only while no other
+    env of it is open: its constructor waits for an ``flock`` on that file, ``close`` lets go (a
+    simulator that takes one client at a time)."""
 
     metadata = {"render_modes": ["rgb_array"]}  # claimed, not drawn: render() is gym.Env's
 
     def __init__(self, dtype: str = "int64", nan_every: int = 0, over_every: int = 0, goal_reward: float = 1.0,
-                 render_mode: str | None = None, obs_size: int = 2, hang_after_s: float = 0.0, hang_seed: int = -1) -> None:
+                 render_mode: str | None = None, obs_size: int = 2, hang_after_s: float = 0.0, hang_seed: int = -1,
+                 one_client: str = "") -> None:
+        self.client = None
+        if one_client:
+            self.client = open(one_client, "a")
+            fcntl.flock(self.client, fcntl.LOCK_EX)
         self.render_mode = render_mode
         self.dt = np.dtype(dtype)
         self.observation_space = gym.spaces.Box(0, 100, (2,), self.dt)
@@ -63,6 +71,11 @@ class IntWalkEnv(gym.Env):
         if self.nan_every and self.steps % self.nan_every == 0:
             reward = float("nan")
         return obs, reward, done, False, {}
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
 
 
 if "IntWalk-v0" not in gym.registry:

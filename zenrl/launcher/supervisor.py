@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,7 +73,45 @@ def _first_line(text: str) -> str:
     return next((x.strip() for x in str(text).splitlines() if x.strip()), "")
 
 
-def check_env(cfg: RunConfig) -> None:
+def catches_signal(pid: int, sig: int) -> bool:
+    """Whether process ``pid`` has a handler for ``sig`` (Linux: ``SigCgt`` of
+    /proc/PID/status); False where that cannot be read."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) >> (int(sig) - 1) & 1)
+    except (OSError, ValueError, IndexError):
+        pass
+    return False
+
+
+#: the launcher says so when making and resetting the env once at start takes this long
+CHECK_ENV_SLOW_S = 30.0
+
+
+def check_env(cfg: RunConfig, slow_s: float = CHECK_ENV_SLOW_S) -> None:
+    """:func:`check_env_now`, with a warning holding where it waits when the env takes ``slow_s``
+    to be made and reset: an env waiting for a simulator that is not there would otherwise leave
+    ``zenrl run`` silent before it has started anything."""
+    done = threading.Event()
+    caller = threading.get_ident()
+
+    def tell() -> None:
+        if done.wait(slow_s):
+            return
+        frame = sys._current_frames().get(caller)
+        where = "".join(traceback.format_stack(frame)) if frame is not None else "(unknown)\n"
+        log.warning("making and resetting env %s once to check it has taken %.0f s (still waiting; Ctrl-C stops): "
+                    "does it wait for a simulator or a connection? It waits here:\n%s", cfg.env.id, slow_s, where.rstrip())
+
+    threading.Thread(target=tell, name="check-env-watch", daemon=True).start()
+    try:
+        check_env_now(cfg)
+    finally:
+        done.set()
+
+
+def check_env_now(cfg: RunConfig) -> None:
     """Make, inspect and reset the run's env once, here, before anything starts: a mistake in
     ``env.id`` / ``env.kwargs`` or an env zenrl cannot learn (continuous actions) is then one
     :class:`ConfigError` line instead of every child failing in its log."""
@@ -122,6 +161,9 @@ class Child:
     killed_for: str | None = None
     #: the league agent it belongs to
     agent: str | None = None
+    #: monotonic time its process was started; whether the launcher has said it has not been heard from since
+    spawned_at: float = 0.0
+    unheard_told: bool = False
 
 
 def replay_children(shards: int, prefix: str = "", **kw: Any) -> list[Child]:
@@ -214,6 +256,7 @@ class Launcher:
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        c.spawned_at, c.unheard_told = time.monotonic(), False
         log.debug("started %s (pid %d): %s", c.name, c.proc.pid, " ".join(cmd))
 
     def _agent_children(self, aid: str, fresh: bool = False, init: Path | None = None) -> list[Child]:
@@ -307,6 +350,30 @@ class Launcher:
             finally:
                 c.proc.kill()
                 c.proc.wait()
+
+    def _tell_unheard(self, now: float | None = None) -> None:
+        """An actor not heard from ``actor.silent_restart_s`` after its process started (its first
+        stats come once its envs are made and reset) may be stuck in its env's constructor or first
+        reset (a simulator it waits for), or only slow to start on a loaded machine: it is not
+        restarted, but the terminal says so once and its threads' stacks go to its log (SIGUSR1,
+        when the process has its handler already: before it, the signal would kill it)."""
+        if self.stop.is_set():
+            return
+        now = time.monotonic() if now is None else now
+        limit = self.cfg.actor.silent_restart_s
+        seen = self.progress.actor_seen
+        for c in self.children:
+            if (c.role != "actor" or c.unheard_told or c.proc is None or c.proc.poll() is not None or c.name in seen
+                    or now - c.spawned_at < limit):
+                continue
+            c.unheard_told = True
+            dumped = catches_signal(c.proc.pid, signal.SIGUSR1)
+            if dumped:
+                c.proc.send_signal(signal.SIGUSR1)
+            log.warning("%s has published nothing in the %.0f s since it started: its env may hang in its constructor "
+                        "or first reset (a simulator it waits for?), or the machine is slow to start it; %s. "
+                        "Waiting on", c.name, now - c.spawned_at,
+                        f"its threads' stacks are in {c.log_path}" if dumped else f"its log: {c.log_path}")
 
     def _terminate(self, children: list[Child] | None = None, grace_s: float = 20.0) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
@@ -450,6 +517,7 @@ class Launcher:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
                 self._restart_silent()
+                self._tell_unheard()
                 self._apply_resets()
                 self._check_done()
                 if live is not None:

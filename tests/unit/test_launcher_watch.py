@@ -1,0 +1,103 @@
+"""The launcher's watch over processes it cannot hear from (zenrl/launcher/supervisor.py): an
+actor that has published nothing since it started, and the launcher's own check of the env that
+takes long. Real child processes; the launcher is not started."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import gymnasium as gym
+import pytest
+
+from zenrl.common.config import load_config
+from zenrl.launcher.supervisor import Child, Launcher, catches_signal, check_env
+
+#: a child with the stack-dump handler every zenrl role registers (zenrl/cli.py), then asleep
+DUMPS = ("import faulthandler, signal, time; faulthandler.register(signal.SIGUSR1, all_threads=True); "
+         "print('up', flush=True); time.sleep(120)")
+#: a child without it: SIGUSR1 would kill it
+PLAIN = "import time; print('up', flush=True); time.sleep(120)"
+
+
+def _child(tmp_path, name: str, code: str) -> Child:
+    log = tmp_path / f"{name}.log"
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=open(log, "wb"), text=True)
+    assert p.stdout.readline().strip() == "up"
+    return Child(name, "actor", [], proc=p, log_path=log, spawned_at=time.monotonic() - 100.0)
+
+
+def test_catches_signal_reads_the_process_handlers():
+    old = signal.signal(signal.SIGUSR2, lambda *_: None)
+    try:
+        assert catches_signal(os.getpid(), signal.SIGUSR2)
+    finally:
+        signal.signal(signal.SIGUSR2, old)
+    assert not catches_signal(os.getpid(), signal.SIGUSR2)
+    assert not catches_signal(2 ** 22 + 12345, signal.SIGUSR1)  # no such process
+
+
+def test_an_actor_never_heard_from_is_named_once_with_its_stack_and_not_killed(tmp_path, caplog):
+    la = Launcher(load_config(None, [f"runs_dir={tmp_path}", "actor.silent_restart_s=60"], environ={}))
+    dumps, plain, heard, young = (_child(tmp_path, "actor-0", DUMPS), _child(tmp_path, "actor-1", PLAIN),
+                                  _child(tmp_path, "actor-2", DUMPS), _child(tmp_path, "actor-3", DUMPS))
+    young.spawned_at = time.monotonic()  # started a moment ago: not yet
+    la.children = [dumps, plain, heard, young]
+    la.progress.actor_seen["actor-2"] = time.monotonic()
+    try:
+        with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+            la._tell_unheard()
+            la._tell_unheard()  # once per process
+        told = [r.getMessage() for r in caplog.records if "has published nothing" in r.getMessage()]
+        assert len(told) == 2 and told[0].startswith("actor-0 has published nothing in the 100 s since it started")
+        assert f"its threads' stacks are in {dumps.log_path}" in told[0]
+        assert told[1].startswith("actor-1 ") and f"its log: {plain.log_path}" in told[1]
+        deadline = time.monotonic() + 10
+        while "most recent call first" not in dumps.log_path.read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "most recent call first" in dumps.log_path.read_text()
+        assert all(c.proc.poll() is None for c in la.children)  # nobody killed, the plain one not signalled
+        assert "most recent call first" not in (tmp_path / "actor-2.log").read_text()
+        # restarted (a new process): watched afresh
+        dumps.spawned_at, dumps.unheard_told = time.monotonic() - 100.0, False
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+            la._tell_unheard()
+        assert [r.getMessage()[:7] for r in caplog.records] == ["actor-0"]
+    finally:
+        for c in la.children:
+            c.proc.kill()
+            c.proc.wait()
+
+
+class SlowToMake(gym.Env):
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Discrete(2)
+
+    def __init__(self, wait_s: float = 0.0) -> None:
+        time.sleep(wait_s)
+
+    def reset(self, *, seed=None, options=None):
+        return self.observation_space.sample(), {}
+
+
+gym.register("SlowToMake-v0", entry_point=SlowToMake)
+
+
+@pytest.mark.parametrize("wait_s, told", [(0.6, True), (0.0, False)])
+def test_the_launchers_env_check_says_where_a_slow_env_waits(tmp_path, caplog, wait_s, told):
+    cfg = load_config(None, [f"runs_dir={tmp_path}", f"env.id={__name__}:SlowToMake-v0",
+                             f"env.kwargs={{wait_s: {wait_s}}}"], environ={})
+    with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+        check_env(cfg, slow_s=0.2)
+        time.sleep(0.3)  # past the watch's time: it must have stood down
+    lines = [r.getMessage() for r in caplog.records if "once to check it has taken" in r.getMessage()]
+    if told:
+        assert len(lines) == 1 and "SlowToMake-v0 once to check it has taken 0 s (still waiting" in lines[0], lines
+        assert "in __init__\n    time.sleep(wait_s)" in lines[0] and "check_env_now" in lines[0], lines[0]
+    else:
+        assert lines == []
