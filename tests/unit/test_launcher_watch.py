@@ -101,3 +101,26 @@ def test_the_launchers_env_check_says_where_a_slow_env_waits(tmp_path, caplog, w
         assert "in __init__\n    time.sleep(wait_s)" in lines[0] and "check_env_now" in lines[0], lines[0]
     else:
         assert lines == []
+
+
+def test_a_league_runs_other_agents_actors_are_not_told_unheard(tmp_path, caplog):
+    """The launcher hears the main agent's stats only: the other agents' actors are never heard,
+    which says nothing about them."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    la = Launcher(load_config(root / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}", "run_id=lg1"],
+                              environ={}))
+    names = [c.name for c in la._plan() if c.role == "actor"]
+    assert "main-actor-0" in names and "exploiter-actor-0" in names
+    main, other = _child(tmp_path, "main-actor-0", PLAIN), _child(tmp_path, "exploiter-actor-0", PLAIN)
+    main.agent, other.agent = "main", "exploiter"
+    la.children = [main, other]
+    try:
+        with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+            la._tell_unheard()
+        assert [r.getMessage().split()[0] for r in caplog.records] == ["main-actor-0"]
+    finally:
+        for c in la.children:
+            c.proc.kill()
+            c.proc.wait()

@@ -351,6 +351,10 @@ class Launcher:
                 c.proc.kill()
                 c.proc.wait()
 
+    def _hears(self, c: Child) -> bool:
+        """Whether this launcher subscribes to ``c``'s stats: in a league run, the main agent's only."""
+        return not self.agents or c.agent == self.cfg.league.main_id
+
     def _tell_unheard(self, now: float | None = None) -> None:
         """An actor not heard from ``actor.silent_restart_s`` after its process started (its first
         stats come once its envs are made and reset) may be stuck in its env's constructor or first
@@ -364,7 +368,7 @@ class Launcher:
         seen = self.progress.actor_seen
         for c in self.children:
             if (c.role != "actor" or c.unheard_told or c.proc is None or c.proc.poll() is not None or c.name in seen
-                    or now - c.spawned_at < limit):
+                    or now - c.spawned_at < limit or not self._hears(c)):
                 continue
             c.unheard_told = True
             dumped = catches_signal(c.proc.pid, signal.SIGUSR1)
