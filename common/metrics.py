@@ -3,8 +3,12 @@ writer (TensorBoard through tensorboardX, plus a JSONL file any script can read)
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
+import os
+import socket
+import struct
 import threading
 import time
 from collections import Counter
@@ -74,38 +78,121 @@ class RejectCounter:
         return out
 
 
+#: seconds before a TensorBoard events file that failed to be written is opened anew
+TB_RETRY_S = 30.0
+#: a failing metrics write is logged at most this often
+WRITE_ERROR_EVERY_S = 60.0
+
+
+def tf_record(data: bytes) -> bytes:
+    """``data`` framed as one TFRecord (what TensorBoard's event files hold): length, its masked
+    CRC-32C, the data, its masked CRC-32C; little-endian."""
+    from tensorboardX.record_writer import masked_crc32c
+
+    head = struct.pack("<Q", len(data))
+    return head + struct.pack("<I", masked_crc32c(head)) + data + struct.pack("<I", masked_crc32c(data))
+
+
 class MetricsWriter:
     """Writes scalars to ``<run_dir>/metrics.jsonl`` (one JSON object per line:
-    ``{"time", "source", "step", <name>: value, ...}``) and to TensorBoard event files in
-    ``<run_dir>/tb/``. Thread-safe."""
+    ``{"time", "source", "step", <name>: value, ...}``) and to a TensorBoard event file in
+    ``<run_dir>/tb/`` (tensorboardX's protos). Thread-safe.
+
+    A write that fails (a full disk) is counted (:attr:`failed_writes`) and logged at most once a
+    minute, and the caller goes on: metrics are not worth stopping a run for; the events go to a
+    new file after :data:`TB_RETRY_S` (the old one may end in a torn record). The events are
+    written in the caller's thread, flushed without fsync: tensorboardX's ``SummaryWriter``
+    writes from a thread of its own, which died on the first failed write, after which every
+    write waited forever on its full queue, and the process at its exit."""
 
     def __init__(self, run_dir: str | Path, tensorboard: bool = True) -> None:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._f = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
         self._lock = threading.Lock()
-        self._tb = None
+        self.failed_writes = 0
+        self._said_at: float | None = None
+        self._tb: Any = None
+        self._tb_on = False
+        self._tb_retry_at = 0.0
+        self._tb_files = 0
         if tensorboard:
-            try:
-                from tensorboardX import SummaryWriter
-
-                self._tb = SummaryWriter(str(self.run_dir / "tb"))
-            except ImportError:  # optional at run time; the JSONL file is always written
+            if importlib.util.find_spec("tensorboardX") is None:  # optional at run time; the JSONL file is always written
                 log.warning("tensorboardX is not installed; writing metrics.jsonl only")
+            else:
+                self._tb_on = True
+                self._open_tb()
+
+    def _failed(self, what: str, e: OSError) -> None:
+        self.failed_writes += 1
+        now = time.monotonic()
+        if self._said_at is None or now - self._said_at >= WRITE_ERROR_EVERY_S:
+            self._said_at = now
+            log.warning("cannot write %s in %s: %s; going on without it (%d metrics writes failed so far)", what,
+                        self.run_dir, e, self.failed_writes)
+
+    def _open_tb(self) -> None:
+        from tensorboardX.proto.event_pb2 import Event
+
+        # a new name for every file this process opens: a reopened one must not append to a torn record
+        self._tb_files += 1
+        path = (self.run_dir / "tb" /
+                f"events.out.tfevents.{int(time.time())}.{socket.gethostname()}.{os.getpid()}.{self._tb_files}")
+        try:
+            path.parent.mkdir(exist_ok=True)
+            self._tb = open(path, "ab")
+            self._tb.write(tf_record(Event(wall_time=time.time(), file_version="brain.Event:2").SerializeToString()))
+            self._tb.flush()
+        except OSError as e:
+            self._close_tb()
+            self._failed("TensorBoard events", e)
+
+    def _close_tb(self) -> None:
+        if self._tb is not None:
+            try:
+                self._tb.close()
+            except OSError:
+                pass  # the file stays readable up to its torn record
+        self._tb, self._tb_retry_at = None, time.monotonic() + TB_RETRY_S
+
+    def _write_tb(self, step: int, tags: Mapping[str, float]) -> None:
+        from tensorboardX.proto.event_pb2 import Event
+        from tensorboardX.proto.summary_pb2 import Summary
+
+        if self._tb is None:
+            if time.monotonic() < self._tb_retry_at:
+                return
+            self._open_tb()
+            if self._tb is None:
+                return
+        ev = Event(wall_time=time.time(), step=step,
+                   summary=Summary(value=[Summary.Value(tag=k, simple_value=float(v)) for k, v in tags.items()]))
+        try:
+            self._tb.write(tf_record(ev.SerializeToString()))
+            self._tb.flush()
+        except OSError as e:
+            self._close_tb()
+            self._failed("TensorBoard events", e)
 
     def write(self, source: str, step: int, values: Mapping[str, Any]) -> None:
         nums = {k: v for k, v in values.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        line = json.dumps({"time": time.time(), "source": source, "step": int(step), **nums}) + "\n"
         with self._lock:
-            self._f.write(json.dumps({"time": time.time(), "source": source, "step": int(step), **nums}) + "\n")
-            if self._tb is not None:
-                for k, v in nums.items():
-                    self._tb.add_scalar(f"{source}/{k}", v, int(step))
+            try:
+                self._f.write(line)
+            except OSError as e:
+                self._failed("metrics.jsonl", e)
+            if self._tb_on:
+                self._write_tb(int(step), {f"{source}/{k}": v for k, v in nums.items()})
 
     def close(self) -> None:
         with self._lock:
-            self._f.close()
-            if self._tb is not None:
-                self._tb.close()
+            try:
+                self._f.close()
+            except OSError as e:  # its last line could not be flushed
+                self._failed("metrics.jsonl", e)
+            self._tb_on = False
+            self._close_tb()
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:

@@ -153,3 +153,30 @@ def procs(tmp_path):
     ps = Procs(tmp_path)
     yield ps
     ps.stop_all()
+
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """``mount(size)``: a real tmpfs of ``size`` (a disk that fills up) under ``tmp_path``,
+    unmounted after the test; skips where it cannot be mounted (not root)."""
+    mounted: list[Path] = []
+
+    def mount(size: str) -> Path:
+        d = tmp_path / f"disk{len(mounted)}"
+        d.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(d)], capture_output=True)
+        if r.returncode:
+            pytest.skip(f"cannot mount a tmpfs (needs root): {r.stderr.decode().strip()}")
+        mounted.append(d)
+        return d
+
+    yield mount
+    for d in mounted:
+        subprocess.run(["umount", "-l", str(d)], check=False)
+
+
+@pytest.fixture
+def small_disk(tmpfs):
+    """A real 4 MiB tmpfs."""
+    return tmpfs("4m")

@@ -8,6 +8,7 @@ and ``zenrl config --list`` every option with its default and description.
 from __future__ import annotations
 
 import argparse
+import errno
 import faulthandler
 import logging
 import os
@@ -804,6 +805,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("zenrl: interrupted\n")
         return 130
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            raise
+        sys.stderr.write(f"zenrl: error: {e}\n")  # a full or read-only disk: its path and why, in one line
+        return 1
     finally:
         if main_thread and before is not None and signal.getsignal(signal.SIGTERM) is signal.default_int_handler:
             signal.signal(signal.SIGTERM, before)

@@ -20,17 +20,6 @@ from tests.conftest import ROOT, replay_stats_reader, wait_until
 pytestmark = pytest.mark.integration
 
 
-@pytest.fixture
-def small_disk(tmp_path):
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(d)], capture_output=True)
-    if r.returncode:
-        pytest.skip(f"cannot mount a tmpfs (needs root): {r.stderr.decode().strip()}")
-    yield d
-    subprocess.run(["umount", "-l", str(d)], check=False)
-
-
 def _replay_args(router, run_id, log_dir):
     return ["replay", "--router", router, "--run-id", run_id, "--log-level", "INFO",
             "--set", "replay.durable=true", "--set", f"replay.log_dir={log_dir}", "--set", "replay.min_size=1",

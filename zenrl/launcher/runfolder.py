@@ -26,9 +26,15 @@ _ERROR_LINE = re.compile(r"^(zenrl: error: |[A-Za-z_][\w.]*(Error|Exception|Exit
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write ``obj`` to ``path`` through a temporary file, so a reader sees the old or the new
+    whole; on an error (a full disk) the temporary file is removed and the old one stays."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=float))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(obj, indent=2, default=float))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_launcher_info(run_dir: Path, run_id: str, router: str) -> None:

@@ -85,6 +85,9 @@ def catches_signal(pid: int, sig: int) -> bool:
     return False
 
 
+#: a summary.json that cannot be written (a full disk) is said at most this often
+DISK_TROUBLE_EVERY_S = 60.0
+
 #: the launcher says so when making and resetting the env once at start takes this long
 CHECK_ENV_SLOW_S = 30.0
 
@@ -203,6 +206,7 @@ class Launcher:
         self.max_restarts = 5
         self.stop_reason = ""
         self.exit_code = 0
+        self._summary_said: float | None = None  # when the terminal last said summary.json could not be written
         # updates when this launch began: the learner resumes from its checkpoint, which may be
         # older than the last count an earlier segment heard
         self.updates_at_start: int | None = None if resume else 0
@@ -483,11 +487,13 @@ class Launcher:
             self._stop_with("interrupted by user (Ctrl-C)")
         finally:
             self.stop.set()
-            self._terminate()
-            self._write_summary()
-            remove_launcher_info(self.run_dir)
-            self._metrics.close()
-            node.close()
+            try:
+                self._terminate()
+                self._write_summary(final=True)
+                remove_launcher_info(self.run_dir)
+                self._metrics.close()
+            finally:
+                node.close()  # an open session's threads would keep this process from exiting
         log.info("run %s stopped: %s", self.run_id, self.stop_reason or "stopped")
         return self.exit_code
 
@@ -615,8 +621,20 @@ class Launcher:
                 # this launch's actors' counts of their envs' problems (zenrl.actor.env_guard)
                 "env_troubles": {k: v for k, v in p.troubles().items() if k in ENV_TROUBLES}}
 
-    def _write_summary(self) -> None:
-        write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())
+    def _write_summary(self, final: bool = False) -> None:
+        """``summary.json``; where it cannot be written (a full disk) the terminal says so, at
+        most once a minute while the run goes on, and the run goes on: its children's
+        checkpoints, logs and metrics on the same disk then fail as well, which they survive."""
+        try:
+            write_json_atomic(self.run_dir / SUMMARY_FILE, self.summary())
+        except OSError as e:
+            now = time.monotonic()
+            if final or self._summary_said is None or now - self._summary_said >= DISK_TROUBLE_EVERY_S:
+                self._summary_said = now
+                log.error("cannot write %s: %s. %s", self.run_dir / SUMMARY_FILE, e,
+                          "This run's summary is lost; its last checkpoint is the newest in checkpoints/" if final
+                          else "The run goes on, but its checkpoints, logs and metrics on that disk fail too "
+                               "until there is room")
 
 
 def launch(cfg: RunConfig, resume_dir: str | None = None, exporter_port: int | None = None) -> int:
