@@ -300,6 +300,8 @@ class RoleLoop:
         vals, line = worker.report(interval_s)
         vals = dict(vals)
         vals.update(self.sup.values())
+        if self.metrics is not None and self.metrics.failed_writes:  # a full disk: said in stats, not only in a log on it
+            vals["metrics_failed_writes"] = self.metrics.failed_writes
         stats_pub.put(P.Stats(role=self.role, id=self.id, time=time.time(), values=vals).encode())
         if self.metrics is not None:
             self.metrics.write(self.role, worker.progress(), vals)

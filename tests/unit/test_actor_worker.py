@@ -92,6 +92,7 @@ def _eval_cfg(tmp_path, *sets):
 class Rows:
     def __init__(self):
         self.rows = []
+        self.failed_writes = 0
 
     def write(self, source, step, values):
         self.rows.append((source, step, dict(values)))

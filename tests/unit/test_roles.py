@@ -31,6 +31,7 @@ class FakeNode:
 class FakeMetrics:
     def __init__(self):
         self.rows, self.closed = [], False
+        self.failed_writes = 0
 
     def write(self, source, step, values):
         self.rows.append((source, step, dict(values)))
@@ -183,3 +184,17 @@ def test_a_thread_that_dies_fails_the_role():
     with pytest.raises(RoleFailed, match="sender"):
         sup.check()
     assert sup.values()["stalled"] == "sender"
+
+
+def test_failed_metrics_writes_are_in_the_stats():
+    """A full disk under the run folder: the count of refused metrics writes goes out with the
+    stats (the log saying so is on the same disk)."""
+    metrics, sent = FakeMetrics(), []
+    w = CountingWorker(threading.Event(), budget=3)
+    loop = RoleLoop(FakeNode(), P.Keys("r1"), "learner", w.id, Cadence(log_interval_s=0.0, idle_s=0.01), metrics)
+    metrics.failed_writes = 4
+    loop._report(w, FakePublisher("k", sent), 1.0)
+    assert P.Stats.decode(sent[-1][1]).values["metrics_failed_writes"] == 4
+    metrics.failed_writes = 0
+    loop._report(w, FakePublisher("k", sent), 1.0)
+    assert "metrics_failed_writes" not in P.Stats.decode(sent[-1][1]).values
