@@ -808,7 +808,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:
         if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
             raise
-        sys.stderr.write(f"zenrl: error: {e}\n")  # a full or read-only disk: its path and why, in one line
+        # a full or read-only disk: in one line, naming the file where the error does
+        where = "" if e.filename else " (writing the run folder, its logs or checkpoints: see runs_dir)"
+        sys.stderr.write(f"zenrl: error: {e}{where}\n")
         return 1
     finally:
         if main_thread and before is not None and signal.getsignal(signal.SIGTERM) is signal.default_int_handler:

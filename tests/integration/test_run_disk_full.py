@@ -68,3 +68,15 @@ def test_a_full_disk_under_a_run_stops_nothing(small_disk, tmp_path, run_id):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["stop_reason"] == "interrupted by user (Ctrl-C)" and summary["learner"]["updates"] > first + 500
     assert not zenrl_pids(run_id), zenrl_pids(run_id)
+
+
+def test_a_run_started_on_a_full_disk_says_so_in_one_line(small_disk, run_id):
+    (small_disk / "filler").write_bytes(b"\0" * shutil.disk_usage(small_disk).free)
+    p = subprocess.run([sys.executable, "-m", "zenrl.cli", "run", "--config", "configs/cartpole_apex.yaml", "--run-id",
+                        run_id, "--set", f"runs_dir={small_disk}", "--set",
+                        f"transport.listen=[tcp/127.0.0.1:{free_port()}]"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 1, (p.returncode, p.stderr[-3000:])
+    assert p.stderr.splitlines()[-1] == ("zenrl: error: [Errno 28] No space left on device (writing the run folder, "
+                                         "its logs or checkpoints: see runs_dir)"), p.stderr[-3000:]
+    assert "Traceback" not in p.stderr and not zenrl_pids(run_id)

@@ -467,12 +467,12 @@ class Launcher:
                 # ... while the children start on every CPU (their imports run in parallel) and
                 # place themselves once imported (zenrl.placement.apply_from_env)
                 os.sched_setaffinity(0, every_cpu)
-        write_launcher_info(self.run_dir, self.run_id, self.endpoint)
-        log.info("run %s: router on %s, logs in %s (zenrl status %s)", self.run_id, listen, self.run_dir / "logs",
-                 self.run_dir)
         node = Node(session=router)
-        self._metrics = MetricsWriter(self.run_dir)
         try:
+            write_launcher_info(self.run_dir, self.run_id, self.endpoint)
+            log.info("run %s: router on %s, logs in %s (zenrl status %s)", self.run_id, listen, self.run_dir / "logs",
+                     self.run_dir)
+            self._metrics = MetricsWriter(self.run_dir)
             k = P.Keys(self.run_id)
             if self.agents:  # the live figures are the main agent's; the league's stats carry resets
                 k = P.Keys(self.agents[self.cfg.league.main_id].run_id or "")
@@ -491,7 +491,8 @@ class Launcher:
                 self._terminate()
                 self._write_summary(final=True)
                 remove_launcher_info(self.run_dir)
-                self._metrics.close()
+                if self._metrics is not None:
+                    self._metrics.close()
             finally:
                 node.close()  # an open session's threads would keep this process from exiting
         log.info("run %s stopped: %s", self.run_id, self.stop_reason or "stopped")
