@@ -63,7 +63,7 @@ class NetworkConfig(_Section):
 
 
 class ReplayConfig(_Section):
-    capacity: int = Field(100_000, ge=1, description="Replay capacity in transitions (FIFO eviction).")
+    capacity: int = Field(100_000, ge=1, description="Replay capacity in transitions (FIFO eviction). The replay stops at its first chunk (exit 2) if the ring could not fit in the machine's memory or the container's limit once full, and warns above 80% of it.")
     max_bytes: Optional[int] = Field(None, ge=1, description="Cap on replay storage in bytes; the ring is sized to min(capacity, max_bytes / item size).")
     alpha: float = Field(0.6, ge=0, le=1, description="Prioritization exponent (0 = uniform).")
     uniform: bool = Field(False, description="Sample uniformly instead of by priority.")

@@ -9,10 +9,20 @@ class ConfigError(ZenrlError, ValueError):
     """A configuration value is invalid; the message names the option and the value."""
 
 
-class EnvOutputError(ConfigError):
+class RunningConfigError(ConfigError):
+    """A configuration error found while a role runs (not at its start) that every later unit
+    of work would meet again: the role stops on it as on a configuration error found at start
+    (exit code 2, not restarted), and the message names what to change."""
+
+
+class EnvOutputError(RunningConfigError):
     """An env gave what every later step would give again and the run cannot use (a reward that
-    is not one number, a reward beyond the run's bound): the role stops on it as on a
-    configuration error (exit code 2, not restarted), and the message names what to change."""
+    is not one number, a reward beyond the run's bound)."""
+
+
+class MemoryTooSmall(RunningConfigError):
+    """The replay's storage, sized once its first chunk shows the item size, needs more memory
+    than the process may have (the machine's, or its container's limit)."""
 
 
 class ProtocolError(ZenrlError, ValueError):

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 from zenrl.common import protocol as P
-from zenrl.common.errors import EnvOutputError, ZenrlError
+from zenrl.common.errors import RunningConfigError, ZenrlError
 
 log = logging.getLogger(__name__)
 
@@ -177,12 +177,13 @@ class Supervisor:
         self.threads: list[WatchedThread] = []
 
     def call(self, name: str, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)``; an exception is counted and logged and None returned, except an
-        :class:`~zenrl.common.errors.EnvOutputError` (an env that gives what the run cannot use
-        on every step): it ends the role, as a configuration error does."""
+        """``fn(*args)``; an exception is counted and logged and None returned, except a
+        :class:`~zenrl.common.errors.RunningConfigError` (an env that gives what the run cannot
+        use on every step, a replay larger than its memory): it ends the role, as a configuration
+        error does."""
         try:
             out = fn(*args)
-        except EnvOutputError:
+        except RunningConfigError:
             raise
         except Exception as e:  # noqa: BLE001 - supervision: one failure costs one unit of work
             self.record(name, e)

@@ -34,7 +34,7 @@ import time
 from typing import Any, Callable, Iterable, Iterator
 
 from zenrl.common import protocol as P
-from zenrl.common.errors import ProtocolError, SpecMismatch
+from zenrl.common.errors import MemoryTooSmall, ProtocolError, SpecMismatch
 from zenrl.common.metrics import RateMeter, RejectCounter
 from zenrl.common.quarantine import Quarantine, SourceLedger
 from zenrl.replay.checks import Checker
@@ -91,6 +91,9 @@ class Ingest:
         self.origins: Any | None = None
         self.dropped_queue_full = 0
         self.dropped_quarantined = 0
+        #: the storage the first chunk asked for cannot fit in memory (MemoryTooSmall): the role
+        #: loop raises it (exit 2) and nothing is stored meanwhile
+        self.fatal: MemoryTooSmall | None = None
 
     # -- the intake -----------------------------------------------------------------------------
     def unit(self) -> int:
@@ -236,6 +239,8 @@ class Ingest:
         if not chunks:
             return 0
         with self.lock:
+            if self.fatal is not None:
+                return 0
             if self.store is None:
                 chunks = self._allocate(chunks)
             chunks = [c for c in chunks if self._guard(c.source, self._fits, c)]
@@ -264,6 +269,13 @@ class Ingest:
                 continue
             try:
                 self.store = allocate(c, self.rcfg, self.seed, self.checker is not None)
+            except MemoryTooSmall as e:
+                if self.checker is None:  # unchecked: the chunk's own fields sized it, not the env's
+                    self.reject("memory", str(e), c.sender)
+                    continue
+                log.error("%s", e)
+                self.fatal = e
+                return []
             except (ValueError, SpecMismatch) as e:
                 self.reject("spec", str(e), c.sender)
                 continue
@@ -338,11 +350,13 @@ class Ingest:
             if self.store is None:
                 # a log written without the checks (or for another env) may hold other fields
                 vetted = self.checker is not None and msg.frames is None and self.checker.check_fields(msg.data) is None
-                self.store = allocate(c, self.rcfg, self.seed, vetted, first_key)
+                self.store = allocate(c, self.rcfg, self.seed, vetted, first_key)  # MemoryTooSmall ends the role
             elif first_key != self.store.buffer.inserts_total:
                 log.warning("replay log gap: expected key %d, record starts at %d", self.store.buffer.inserts_total, first_key)
             why = self.store.fits(c)
             res = self.store.insert([c])[0] if not why else SpecMismatch(why)
+        except MemoryTooSmall:
+            raise  # a ValueError too, but not a record to skip: the role ends on it
         except (ValueError, SpecMismatch) as e:
             res = e
         if isinstance(res, Exception):

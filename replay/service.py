@@ -152,7 +152,9 @@ class ReplayService:
     def step(self, timeout_s: float) -> bool:
         """The periodic duties (the ingest thread does the work): fsync the log when due while no
         chunk comes to do it (or retry a log the disk failed), hold the quarantine tokens; then
-        wait ``timeout_s``."""
+        wait ``timeout_s``. Raises the ingest thread's :class:`MemoryTooSmall` (the role ends on it)."""
+        if self.ingestor.fatal is not None:
+            raise self.ingestor.fatal
         if self.journal is not None:
             with self._lock:
                 self.journal.tick(self.buffer)

@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol, Sequence
 
 import numpy as np
 
 from zenrl.common import protocol as P
-from zenrl.common.errors import SpecMismatch
-from zenrl.common.specs import spec_of_batch
+from zenrl.common.errors import MemoryTooSmall, SpecMismatch
+from zenrl.common.specs import spec_nbytes, spec_of_batch
 from zenrl.replay.buffer import InMemoryReplay
 from zenrl.replay.checks import Checker, Rejection
 from zenrl.replay.frames import FrameChunk, FrameReplay
@@ -104,12 +105,69 @@ def check_one(checker: Checker, c: Chunk) -> Rejection | None:
             or checker.check_frames(c.msg.frames))
 
 
+#: bytes a slot costs besides its fields: its key (int64), removed flag, and sum-tree nodes
+SLOT_OVERHEAD_BYTES = 8 + 1 + 16
+
+
+def memory_limit() -> tuple[int, str] | None:
+    """The memory this process may use at most, and what sets it: the container's limit (cgroup
+    v2 ``memory.max``, v1 ``memory.limit_in_bytes``) where one is below the machine's memory
+    (``MemTotal``). None where neither can be read (not Linux)."""
+    found: list[tuple[int, str]] = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                found.append((int(line.split()[1]) * 1024, "the machine's memory"))
+    except (OSError, ValueError, IndexError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 1 << 60:  # "max" / a huge number: no limit
+            found.append((int(text), f"the container's memory limit ({path})"))
+    return min(found) if found else None
+
+
+def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None = None) -> None:
+    """Raise :class:`MemoryTooSmall` when a ring of ``items`` slots of ``bytes_per_item`` field
+    bytes (allocated lazily: its pages are committed as it fills) could not fit in ``limit``
+    (default :func:`memory_limit`) once full: the replay would be killed for memory hours into a
+    run, restarted and killed again. Logs a warning when it would take more than 80% of it."""
+    limit = memory_limit() if limit is None else limit
+    if limit is None:
+        return
+    need = items * (bytes_per_item + SLOT_OVERHEAD_BYTES)
+    have, what = limit
+    gib = 1 << 30
+    sized = (f"replay.capacity = {items:,} items of {bytes_per_item:,} bytes need {need / gib:.1f} GiB once full, "
+             f"and {what} is {have / gib:.1f} GiB")
+    if need > have:
+        raise MemoryTooSmall(f"{sized}: lower replay.capacity, or set replay.max_bytes to the memory the replay may take")
+    if need > 0.8 * have:
+        log.warning("%s: the replay alone would take %.0f%% of it once full (replay.max_bytes caps it)", sized,
+                    100 * need / have)
+
+
 def allocate(c: Chunk, rcfg: Any, seed: int, vetted: bool, first_key: int | None = None) -> Store:
     """The storage for a replay whose first stored chunk is ``c`` (frame mode when it carries
     frames), sized by the replay config ``rcfg``; its keys start at ``first_key`` (a restored log)
     or 0. ``vetted``: ``c``'s fields are known to be the env's (it passed the checks). Raises
-    ``ValueError``/``SpecMismatch`` when no storage can be built from ``c``."""
-    store: Store = FrameStore.allocate(c, rcfg, seed) if c.msg.frames is not None else PlainStore.allocate(c, rcfg, seed, vetted)
+    ``ValueError``/``SpecMismatch`` when no storage can be built from ``c``, :class:`MemoryTooSmall`
+    when it could not fit in memory once full (:func:`check_memory`)."""
+    # before anything is allocated (the slots' keys are written at once): the item's own fields
+    # (all of it for full observations, a lower bound in frame mode), then the storage's own figure
+    refs = c.msg.frame_refs() if c.msg.frames is not None else {}
+    cols = spec_nbytes(spec_of_batch({k: v for k, v in c.data.items() if k not in refs}))
+    check_memory(rcfg.capacity if rcfg.max_bytes is None else min(rcfg.capacity, rcfg.max_bytes // max(cols, 1)), cols)
+    try:
+        store: Store = (FrameStore.allocate(c, rcfg, seed) if c.msg.frames is not None
+                        else PlainStore.allocate(c, rcfg, seed, vetted))
+    except MemoryError as e:
+        raise MemoryTooSmall(f"replay.capacity = {rcfg.capacity:,}: the replay's storage cannot be allocated ({e}); "
+                             "lower replay.capacity, or set replay.max_bytes to the memory the replay may take") from None
+    check_memory(store.buffer.capacity, store.buffer.bytes_per_item)
     if first_key is not None:
         store.buffer.start_at(first_key)
     return store

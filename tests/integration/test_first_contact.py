@@ -92,6 +92,22 @@ def _status_json(run_dir) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def test_a_replay_larger_than_the_machine_stops_the_run_at_once(tmp_path, run_id):
+    """replay.capacity of 10**11 transitions (terabytes once full): the replay, once the first
+    chunk shows an item's size, stops on it before allocating (exit 2, not restarted) and the run
+    stops with the line that names the setting; before, the ring was allocated lazily and
+    the replay killed for memory hours later, or every chunk failed to allocate."""
+    p = zenrl(*run_args(tmp_path, run_id, "replay.capacity=100000000000", "max_wall_s=240"), "--no-progress",
+              timeout_s=300)
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    errors = [x for x in p.stderr.splitlines() if "replay stopped on a configuration error (not restarted)" in x]
+    assert errors and "replay.capacity = 100,000,000,000 items of" in errors[0] and "GiB once full, and" in errors[0] \
+        and "lower replay.capacity, or set replay.max_bytes" in errors[0], p.stderr[-3000:]
+    summary = json.loads((tmp_path / run_id / "summary.json").read_text())
+    assert summary["stop_reason"].startswith("replay failed on its configuration: replay.capacity = ")
+    assert summary["restarts"]["replay"] == 0 and not zenrl_pids(run_id)
+
+
 def test_status_ctrl_c_and_resume(tmp_path, run_id):
     run_dir = tmp_path / run_id
     # max_wall_s: a safety net only (the test stops the run with Ctrl-C), longer than every wait below
