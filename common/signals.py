@@ -1,4 +1,4 @@
-"""Stop signals (SIGTERM, SIGINT) turned into a call on an ordinary thread.
+"""Stop signals (SIGTERM, SIGINT, SIGHUP) turned into a call on an ordinary thread.
 
 A Python signal handler runs in the main thread, between two of its bytecodes, wherever that
 thread is. A handler that sets a ``threading.Event`` takes the event's lock there, and the main
@@ -25,8 +25,10 @@ from typing import Any, Callable
 
 log = logging.getLogger(__name__)
 
-#: the signals that stop a zenrl process
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: the signals that stop a zenrl process in order (its state saved, its session closed). SIGHUP:
+#: a terminal that closes (an SSH connection lost) sends it to every process of its foreground
+#: group, whose default action would kill them all where they stand
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 _STOP_NUMBERS = frozenset(int(s) for s in STOP_SIGNALS)
 
 
@@ -75,7 +77,7 @@ def _noted(_signum: int, _frame: Any) -> None:
 
 
 def on_stop_signals(callback: Callable[[int], None]) -> None:
-    """Call ``callback(signum)`` on the ``signals`` thread for each SIGTERM and SIGINT, instead
+    """Call ``callback(signum)`` on the ``signals`` thread for each stop signal, instead
     of the signal's default action (a later call replaces the callback). Call from the main
     thread (Python's rule for signal handlers). The callback may take locks and set events; it
     runs while the main thread goes on."""
@@ -92,7 +94,7 @@ def on_stop_signals(callback: Callable[[int], None]) -> None:
 
 
 def install_stop_signals(stop: threading.Event) -> None:
-    """SIGTERM and SIGINT set ``stop`` (so the process closes its session and saves state)
+    """The stop signals set ``stop`` (so the process closes its session and saves state)
     instead of killing the interpreter. Call from the main thread."""
 
     def on_signal(signum: int) -> None:

@@ -211,3 +211,32 @@ def test_a_role_waiting_for_its_router_stops_at_once(tmp_path):
     assert took < 5, f"{took:.1f} s after SIGTERM"
     assert p.returncode == 2, (p.returncode, err[-2000:])
     assert err.strip().splitlines()[-1] == f"zenrl: error: stopped while waiting for the Zenoh router at {dead}", err[-2000:]
+
+
+def test_a_terminal_that_hangs_up_stops_the_run_in_order(tmp_path, run_id):
+    """SIGHUP to the run's process group, what a closing terminal (a lost SSH connection) sends:
+    every process stops as on Ctrl-C, the learner's final checkpoint and the summary written, the
+    run resumable; before, SIGHUP's default action killed them all where they stood."""
+    run_dir = tmp_path / run_id
+    cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=600",
+                                                          "learner.checkpoint_interval_s=2"),
+           "--no-progress"]
+    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                **own_process_group())
+    try:
+        wait_until(lambda: list((run_dir / "checkpoints").glob("ckpt-*.pt")) if (run_dir / "checkpoints").is_dir()
+                   else None, BUSY_TIMEOUT_S, "the learner's first checkpoint")
+        os.killpg(launcher.pid, signal.SIGHUP)
+        out, _ = launcher.communicate(timeout=BUSY_TIMEOUT_S)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+    assert launcher.returncode == 0, out[-3000:]
+    assert "stopped: its terminal hung up (SIGHUP)" in out and "did not stop within" not in out, out[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["stop_reason"] == "its terminal hung up (SIGHUP)" and not (run_dir / "launcher.json").exists()
+    learner = (run_dir / "logs" / "learner.log").read_text()
+    assert "signal SIGHUP received, stopping" in learner
+    assert "checkpoint " in learner.split("signal SIGHUP received, stopping", 1)[1], learner[-2000:]  # the final one
+    assert not zenrl_pids(run_id)

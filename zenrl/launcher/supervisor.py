@@ -432,6 +432,8 @@ class Launcher:
         if signum == signal.SIGINT:
             self._first_interrupt = time.monotonic()
             self._stop_with("interrupted by user (Ctrl-C)")
+        elif signum == signal.SIGHUP:
+            self._stop_with("its terminal hung up (SIGHUP)")
         else:
             self._stop_with(f"stopped by {signal.Signals(signum).name} (e.g. docker stop, kill)")
 
