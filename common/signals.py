@@ -90,6 +90,8 @@ def on_stop_signals(callback: Callable[[int], None]) -> None:
         if old not in (-1, _relay.write_fd):
             log.warning("signal wake-up fd %d replaced by zenrl's stop-signal relay", old)
     for s in STOP_SIGNALS:
+        if s == signal.SIGHUP and signal.getsignal(s) == signal.SIG_IGN:
+            continue  # `nohup zenrl run ...`: asked to outlive its terminal (children inherit the ignore)
         signal.signal(s, _noted)
 
 

@@ -4,6 +4,7 @@ handlers are per process, and pytest's Ctrl-C must stay pytest's)."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import textwrap
@@ -83,3 +84,22 @@ def test_the_default_action_is_replaced() -> None:
     """)
     assert r.returncode == 0, (r.returncode, r.stderr)
     assert r.stdout.strip() == "stopped"
+
+
+HANGUP = """
+    import os, signal, threading
+    from zenrl.common.signals import install_stop_signals
+    stop = threading.Event()
+    install_stop_signals(stop)
+    os.kill(os.getpid(), signal.SIGHUP)
+    print("stopped" if stop.wait(2.0) else "running", flush=True)
+"""
+
+
+def test_a_hangup_stops_in_order_unless_the_process_was_started_to_ignore_it() -> None:
+    r = run_child(HANGUP)
+    assert r.returncode == 0 and r.stdout.strip() == "stopped", (r.stdout, r.stderr)
+    # `nohup`: SIGHUP ignored by the parent before exec; the process keeps the ignore
+    p = subprocess.run([sys.executable, "-c", textwrap.dedent(HANGUP)], cwd=ROOT, capture_output=True, text=True,
+                       timeout=20, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    assert p.returncode == 0 and p.stdout.strip() == "running", (p.stdout, p.stderr)
