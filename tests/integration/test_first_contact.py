@@ -8,6 +8,7 @@ exit code, what it prints and what it leaves on disk.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -32,6 +33,27 @@ BUSY_TIMEOUT_S = 180
 def zenrl(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "zenrl.cli", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout_s)
+
+
+@contextlib.contextmanager
+def launched(cmd: list[str]):
+    """``cmd`` (a ``zenrl run``) started in a process group of its own, as from a terminal, its
+    output read at the end; killed if still running when the block ends."""
+    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                **own_process_group())
+    try:
+        yield launcher
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+
+
+def signal_group(launcher: subprocess.Popen, sig: int) -> str:
+    """Send ``sig`` to the launcher's whole process group, as a terminal does; its output once it
+    has exited."""
+    os.killpg(launcher.pid, sig)
+    return launcher.communicate(timeout=BUSY_TIMEOUT_S)[0]
 
 
 def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
@@ -115,9 +137,7 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
                                                           "evaluator.interval_s=1")]
     # a process group of its own (not a session: the kernel's autogroups would schedule the run
     # apart from the status commands below): Ctrl-C is sent to the whole group, as a terminal does
-    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                **own_process_group())
-    try:
+    with launched(cmd) as launcher:
         wait_until(lambda: (run_dir / "launcher.json").is_file(), 30, "launcher.json")
 
         def ready():
@@ -145,12 +165,7 @@ def test_status_ctrl_c_and_resume(tmp_path, run_id):
         assert launcher.poll() is None and (run_dir / "launcher.json").is_file()
         # what Ctrl-C sends: SIGINT to every process of the group; the launcher forwards SIGTERM too,
         # so each child gets two signals at once (which once deadlocked a child's stop handler)
-        os.killpg(launcher.pid, signal.SIGINT)
-        out, _ = launcher.communicate(timeout=BUSY_TIMEOUT_S)
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait()
+        out = signal_group(launcher, signal.SIGINT)
     assert launcher.returncode == 0, out[-3000:]
     assert "stopped: interrupted by user (Ctrl-C)" in out, out[-2000:]
     assert "did not stop within" not in out, out[-3000:]  # every child stopped by itself
@@ -221,17 +236,10 @@ def test_a_terminal_that_hangs_up_stops_the_run_in_order(tmp_path, run_id):
     cmd = [sys.executable, "-m", "zenrl.cli", *run_args(tmp_path, run_id, "target_return=null", "max_wall_s=600",
                                                           "learner.checkpoint_interval_s=2"),
            "--no-progress"]
-    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                **own_process_group())
-    try:
+    with launched(cmd) as launcher:
         wait_until(lambda: list((run_dir / "checkpoints").glob("ckpt-*.pt")) if (run_dir / "checkpoints").is_dir()
                    else None, BUSY_TIMEOUT_S, "the learner's first checkpoint")
-        os.killpg(launcher.pid, signal.SIGHUP)
-        out, _ = launcher.communicate(timeout=BUSY_TIMEOUT_S)
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait()
+        out = signal_group(launcher, signal.SIGHUP)
     assert launcher.returncode == 0, out[-3000:]
     assert "stopped: its terminal hung up (SIGHUP)" in out and "did not stop within" not in out, out[-3000:]
     summary = json.loads((run_dir / "summary.json").read_text())

@@ -50,8 +50,8 @@ def test_an_actor_never_heard_from_is_named_once_with_its_stack_and_not_killed(t
     la.progress.actor_seen["actor-2"] = time.monotonic()
     try:
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._tell_unheard()
-            la._tell_unheard()  # once per process
+            la._watch_silent_actors()
+            la._watch_silent_actors()  # once per process
         told = [r.getMessage() for r in caplog.records if "has published nothing" in r.getMessage()]
         assert len(told) == 2 and told[0].startswith("actor-0 has published nothing in the 100 s since it started")
         assert f"its threads' stacks are in {dumps.log_path}" in told[0]
@@ -66,7 +66,7 @@ def test_an_actor_never_heard_from_is_named_once_with_its_stack_and_not_killed(t
         dumps.spawned_at, dumps.unheard_told = time.monotonic() - 100.0, False
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._tell_unheard()
+            la._watch_silent_actors()
         assert [r.getMessage()[:7] for r in caplog.records] == ["actor-0"]
     finally:
         for c in la.children:
@@ -118,7 +118,7 @@ def test_a_league_runs_other_agents_actors_are_not_told_unheard(tmp_path, caplog
     la.children = [main, other]
     try:
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._tell_unheard()
+            la._watch_silent_actors()
         assert [r.getMessage().split()[0] for r in caplog.records] == ["main-actor-0"]
     finally:
         for c in la.children:

@@ -330,58 +330,51 @@ class Launcher:
             self._spawn(c, ["--auto-resume"] if c.role == "learner" and not {"--resume", "--auto-resume"} & set(c.args)
                         else None)
 
-    def _restart_silent(self, now: float | None = None) -> None:
-        """An actor that has published stats and then none for ``actor.silent_restart_s`` while its
-        process runs is stuck (an env's step or reset that never returns: its role loop publishes
-        nothing while it waits). Its threads' stacks go to its log (SIGUSR1: faulthandler), then it
-        is killed; :meth:`_supervise` restarts it, as it restarts a child that died."""
-        if self.stop.is_set():
-            return
-        now = time.monotonic() if now is None else now
-        limit = self.cfg.actor.silent_restart_s
-        seen = self.progress.actor_seen
-        for c in self.children:
-            last = seen.get(c.name)
-            if c.role != "actor" or c.proc is None or c.proc.poll() is not None or last is None or now - last < limit:
-                continue
-            seen.pop(c.name, None)  # until the restarted process reports
-            c.killed_for = f"killed by the launcher: no stats for {now - last:.0f} s, stuck"
-            log.warning("%s has published no stats for %.0f s although its process runs: stuck (in its env's step or "
-                        "reset?). Its threads' stacks go to %s; restarting it", c.name, now - last, c.log_path)
-            try:
-                c.proc.send_signal(signal.SIGUSR1)
-                time.sleep(0.5)  # faulthandler writes from a signal handler: a moment
-            finally:
-                c.proc.kill()
-                c.proc.wait()
-
     def _hears(self, c: Child) -> bool:
         """Whether this launcher subscribes to ``c``'s stats: in a league run, the main agent's only."""
         return not self.agents or c.agent == self.cfg.league.main_id
 
-    def _tell_unheard(self, now: float | None = None) -> None:
-        """An actor not heard from ``actor.silent_restart_s`` after its process started (its first
-        stats come once its envs are made and reset) may be stuck in its env's constructor or first
-        reset (a simulator it waits for), or only slow to start on a loaded machine: it is not
-        restarted, but the terminal says so once and its threads' stacks go to its log (SIGUSR1,
-        when the process has its handler already: before it, the signal would kill it)."""
+    def _watch_silent_actors(self, now: float | None = None) -> None:
+        """Actors silent for ``actor.silent_restart_s`` while their process runs (their role loop
+        publishes nothing while it waits in an env's step, reset or constructor):
+
+        * one that has published stats and then none is stuck: its threads' stacks go to its log
+          (SIGUSR1: faulthandler), then it is killed; :meth:`_supervise` restarts it, as it
+          restarts a child that died;
+        * one not heard from since its process started (its first stats come once its envs are
+          made and reset) may be stuck in its env's constructor (a simulator it waits for) or only
+          slow to start on a loaded machine: it is not restarted, but the terminal says so once and
+          its stacks go to its log (SIGUSR1 only when the process has its handler already: before
+          it, the signal would kill it)."""
         if self.stop.is_set():
             return
         now = time.monotonic() if now is None else now
         limit = self.cfg.actor.silent_restart_s
         seen = self.progress.actor_seen
         for c in self.children:
-            if (c.role != "actor" or c.unheard_told or c.proc is None or c.proc.poll() is not None or c.name in seen
-                    or now - c.spawned_at < limit or not self._hears(c)):
+            if c.role != "actor" or c.proc is None or c.proc.poll() is not None:
                 continue
-            c.unheard_told = True
-            dumped = catches_signal(c.proc.pid, signal.SIGUSR1)
-            if dumped:
-                c.proc.send_signal(signal.SIGUSR1)
-            log.warning("%s has published nothing in the %.0f s since it started: its env may hang in its constructor "
-                        "or first reset (a simulator it waits for?), or the machine is slow to start it; %s. "
-                        "Waiting on", c.name, now - c.spawned_at,
-                        f"its threads' stacks are in {c.log_path}" if dumped else f"its log: {c.log_path}")
+            last = seen.get(c.name)
+            if last is not None and now - last >= limit:
+                seen.pop(c.name, None)  # until the restarted process reports
+                c.killed_for = f"killed by the launcher: no stats for {now - last:.0f} s, stuck"
+                log.warning("%s has published no stats for %.0f s although its process runs: stuck (in its env's step "
+                            "or reset?). Its threads' stacks go to %s; restarting it", c.name, now - last, c.log_path)
+                try:
+                    c.proc.send_signal(signal.SIGUSR1)
+                    time.sleep(0.5)  # faulthandler writes from a signal handler: a moment
+                finally:
+                    c.proc.kill()
+                    c.proc.wait()
+            elif last is None and not c.unheard_told and now - c.spawned_at >= limit and self._hears(c):
+                c.unheard_told = True
+                dumped = catches_signal(c.proc.pid, signal.SIGUSR1)
+                if dumped:
+                    c.proc.send_signal(signal.SIGUSR1)
+                log.warning("%s has published nothing in the %.0f s since it started: its env may hang in its "
+                            "constructor or first reset (a simulator it waits for?), or the machine is slow to start "
+                            "it; %s. Waiting on", c.name, now - c.spawned_at,
+                            f"its threads' stacks are in {c.log_path}" if dumped else f"its log: {c.log_path}")
 
     def _terminate(self, children: list[Child] | None = None, grace_s: float = 20.0) -> None:
         # the replay last, so that actors' final chunks reach it; the learner needs nothing from
@@ -529,8 +522,7 @@ class Launcher:
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
-                self._restart_silent()
-                self._tell_unheard()
+                self._watch_silent_actors()
                 self._apply_resets()
                 self._check_done()
                 if live is not None:
