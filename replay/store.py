@@ -130,11 +130,12 @@ def memory_limit() -> tuple[int, str] | None:
     return min(found) if found else None
 
 
-def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None = None) -> None:
+def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None = None, warn: bool = True) -> None:
     """Raise :class:`MemoryTooSmall` when a ring of ``items`` slots of ``bytes_per_item`` field
     bytes (allocated lazily: its pages are committed as it fills) could not fit in ``limit``
     (default :func:`memory_limit`) once full: the replay would be killed for memory hours into a
-    run, restarted and killed again. Logs a warning when it would take more than 80% of it."""
+    run, restarted and killed again. With ``warn``, logs a warning when it would take more than
+    80% of it."""
     limit = memory_limit() if limit is None else limit
     if limit is None:
         return
@@ -145,7 +146,7 @@ def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None 
              f"and {what} is {have / gib:.1f} GiB")
     if need > have:
         raise MemoryTooSmall(f"{sized}: lower replay.capacity, or set replay.max_bytes to the memory the replay may take")
-    if need > 0.8 * have:
+    if warn and need > 0.8 * have:
         log.warning("%s: the replay alone would take %.0f%% of it once full (replay.max_bytes caps it)", sized,
                     100 * need / have)
 
@@ -160,7 +161,8 @@ def allocate(c: Chunk, rcfg: Any, seed: int, vetted: bool, first_key: int | None
     # (all of it for full observations, a lower bound in frame mode), then the storage's own figure
     refs = c.msg.frame_refs() if c.msg.frames is not None else {}
     cols = spec_nbytes(spec_of_batch({k: v for k, v in c.data.items() if k not in refs}))
-    check_memory(rcfg.capacity if rcfg.max_bytes is None else min(rcfg.capacity, rcfg.max_bytes // max(cols, 1)), cols)
+    check_memory(rcfg.capacity if rcfg.max_bytes is None else min(rcfg.capacity, rcfg.max_bytes // max(cols, 1)), cols,
+                 warn=False)
     try:
         store: Store = (FrameStore.allocate(c, rcfg, seed) if c.msg.frames is not None
                         else PlainStore.allocate(c, rcfg, seed, vetted))

@@ -104,3 +104,13 @@ def test_an_unchecked_replay_rejects_the_chunk_that_sized_it(monkeypatch):
     assert svc.ingestor.fatal is None and svc.stats_values()["rejected_memory"] == 1
     svc.step(0.0)
     svc.close()
+
+
+def test_a_replay_near_its_limit_is_warned_about_once(monkeypatch, caplog):
+    monkeypatch.setattr(store, "memory_limit", lambda: (int(1000 * (ITEM + SLOT_OVERHEAD_BYTES) / 0.9), "the limit"))
+    with caplog.at_level(logging.WARNING, logger="zenrl.replay.store"):
+        svc = _service(True, 1000)
+        assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == B
+    said = [r.getMessage() for r in caplog.records if "once full" in r.getMessage()]
+    assert len(said) == 1 and "would take 90% of it" in said[0], said
+    svc.close()
