@@ -180,8 +180,9 @@ def test_an_actor_stuck_making_its_envs_is_named_with_its_stack_and_left_running
     """The int walk as a simulator that takes one client at a time (each env waits for an
     ``flock`` in its constructor): the launcher's own check of the env makes one and lets go, then
     each actor's envs wait for each other, so no actor ever publishes a thing. ``zenrl run`` says
-    so once per actor after actor.silent_restart_s, with the actor's threads' stacks (the env's
-    constructor among them) in its log, and does not restart it (a slow start looks the same);
+    so once per actor (and for the evaluator) after actor.silent_restart_s, with the actor's
+    threads' stacks (the env's constructor among them) in its log, and does not restart it (a slow
+    start looks the same);
     before, the terminal showed 0 env steps with no word until it was stopped."""
     _user_envs(tmp_path, monkeypatch)
     lock = tmp_path / "simulator.lock"
@@ -190,11 +191,33 @@ def test_an_actor_stuck_making_its_envs_is_named_with_its_stack_and_left_running
                                  "target_return=null", "max_wall_s=20", timeout_s=300)
     assert p.returncode == 0, (p.returncode, p.stderr[-3000:])
     told = [x for x in p.stderr.splitlines() if "has published nothing in the" in x]
-    assert sorted(x.split("zenrl.launcher: ")[1].split()[0] for x in told) == ["actor-0", "actor-1"], p.stderr[-3000:]
+    # the evaluator's envs wait for the simulator too
+    assert sorted(x.split("zenrl.launcher: ")[1].split()[0] for x in told) == ["actor-0", "actor-1", "evaluator"], \
+        p.stderr[-3000:]
     assert "its env may hang in its constructor or first reset" in told[0], told
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["env_steps"] == 0 and not summary["restarts"].get("actor-0") and not summary["restarts"].get("actor-1")
     assert "max_wall_s" in summary["stop_reason"], summary["stop_reason"]
     stacks = [(run_dir / "logs" / f"actor-{i}.log").read_text() for i in (0, 1)]
     assert all("most recent call first" in s and "user_envs.py" in s and "in __init__" in s for s in stacks), stacks
+    assert not _leftovers(run_id), _leftovers(run_id)
+
+
+def test_an_evaluator_stuck_in_its_env_is_restarted_with_its_stack_in_its_log(tmp_path, run_id, monkeypatch):
+    """The int walk never returning from the step of the evaluator's first env in its first round
+    (seed 1,000,000: seed + evaluator.seed_offset): the evaluator publishes nothing while it waits,
+    so no evaluation comes and a run with a target would never end. ``zenrl run`` restarts it after
+    max(actor.silent_restart_s, 3 evaluator.interval_s) of silence, its stacks in its log; the
+    actors, on other seeds, go on."""
+    _user_envs(tmp_path, monkeypatch)
+    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "env.id=user_envs:IntWalk-v0",
+                                 "env.kwargs={hang_after_s: 0.001, hang_seed: 1000000}", "actor.silent_restart_s=3",
+                                 "evaluator.interval_s=1", "target_return=null", "max_wall_s=25", timeout_s=300)
+    assert p.returncode == 0, (p.returncode, p.stderr[-3000:])
+    assert "evaluator has published no stats for" in p.stderr and "restarting it" in p.stderr, p.stderr[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["restarts"]["evaluator"] >= 1 and not summary["restarts"].get("actor-0"), summary["restarts"]
+    assert summary["env_steps"] > 0
+    log = (run_dir / "logs" / "evaluator.log").read_text()
+    assert "most recent call first" in log and "user_envs.py" in log and "in step" in log, log[-3000:]
     assert not _leftovers(run_id), _leftovers(run_id)

@@ -50,8 +50,8 @@ def test_an_actor_never_heard_from_is_named_once_with_its_stack_and_not_killed(t
     la.progress.actor_seen["actor-2"] = time.monotonic()
     try:
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._watch_silent_actors()
-            la._watch_silent_actors()  # once per process
+            la._watch_silent()
+            la._watch_silent()  # once per process
         told = [r.getMessage() for r in caplog.records if "has published nothing" in r.getMessage()]
         assert len(told) == 2 and told[0].startswith("actor-0 has published nothing in the 100 s since it started")
         assert f"its threads' stacks are in {dumps.log_path}" in told[0]
@@ -66,7 +66,7 @@ def test_an_actor_never_heard_from_is_named_once_with_its_stack_and_not_killed(t
         dumps.spawned_at, dumps.unheard_told = time.monotonic() - 100.0, False
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._watch_silent_actors()
+            la._watch_silent()
         assert [r.getMessage()[:7] for r in caplog.records] == ["actor-0"]
     finally:
         for c in la.children:
@@ -118,9 +118,33 @@ def test_a_league_runs_other_agents_actors_are_not_told_unheard(tmp_path, caplog
     la.children = [main, other]
     try:
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
-            la._watch_silent_actors()
+            la._watch_silent()
         assert [r.getMessage().split()[0] for r in caplog.records] == ["main-actor-0"]
     finally:
         for c in la.children:
             c.proc.kill()
             c.proc.wait()
+
+
+@pytest.mark.parametrize("interval_s, silent_s, killed", [(1, 100, True), (30, 80, False), (30, 95, True)])
+def test_a_silent_evaluator_is_restarted_after_three_of_its_intervals_at_least(tmp_path, caplog, interval_s, silent_s,
+                                                                                killed):
+    la = Launcher(load_config(None, [f"runs_dir={tmp_path}", "actor.silent_restart_s=60",
+                                     f"evaluator.interval_s={interval_s}"], environ={}))
+    ev = _child(tmp_path, "evaluator", DUMPS)
+    ev.role = "evaluator"
+    la.children = [ev]
+    la.progress.evaluator_seen = time.monotonic() - silent_s
+    try:
+        with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+            la._watch_silent()
+        assert (ev.proc.poll() is not None) == killed
+        if killed:
+            assert ev.killed_for.startswith("killed by the launcher: no stats for") and la.progress.evaluator_seen is None
+            assert "most recent call first" in ev.log_path.read_text()
+        else:
+            assert not caplog.records
+    finally:
+        if ev.proc.poll() is None:
+            ev.proc.kill()
+        ev.proc.wait()

@@ -37,6 +37,8 @@ class Progress:
     actor_env: dict[str, dict[str, int]] = field(default_factory=dict)
     #: monotonic time of each actor's last stats (the launcher restarts one that falls silent)
     actor_seen: dict[str, float] = field(default_factory=dict)
+    #: monotonic time of the evaluator's last stats (it reports every evaluator.interval_s)
+    evaluator_seen: float | None = None
     evals: list[dict[str, Any]] = field(default_factory=list)
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
@@ -73,6 +75,8 @@ class Progress:
                     env = {k: int(v) for k, v in msg.values.items() if k in ENV_TROUBLES and isinstance(v, (int, float))}
                     if env:
                         self.actor_env[msg.id] = env
+                elif msg.role == "evaluator":
+                    self.evaluator_seen = time.monotonic()
                 elif msg.role == "learner":
                     self.learner = dict(msg.values)
                 elif msg.role == "replay":

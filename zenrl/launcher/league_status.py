@@ -6,7 +6,6 @@ distribution (PFSP plus self-play), from the league's ``league/table`` queryable
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path

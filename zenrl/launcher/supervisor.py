@@ -334,9 +334,26 @@ class Launcher:
         """Whether this launcher subscribes to ``c``'s stats: in a league run, the main agent's only."""
         return not self.agents or c.agent == self.cfg.league.main_id
 
-    def _watch_silent_actors(self, now: float | None = None) -> None:
-        """Actors silent for ``actor.silent_restart_s`` while their process runs (their role loop
-        publishes nothing while it waits in an env's step, reset or constructor):
+    def _silence_limit(self, c: Child) -> float:
+        """Seconds without stats after which ``c`` counts as silent: ``actor.silent_restart_s``,
+        for the evaluator at least three of its report intervals (``evaluator.interval_s``)."""
+        limit = self.cfg.actor.silent_restart_s
+        return max(limit, 3 * self.cfg.evaluator.interval_s) if c.role == "evaluator" else limit
+
+    def _last_heard(self, c: Child) -> float | None:
+        p = self.progress
+        return p.evaluator_seen if c.role == "evaluator" else p.actor_seen.get(c.name)
+
+    def _forget(self, c: Child) -> None:
+        """Until the restarted process reports."""
+        if c.role == "evaluator":
+            self.progress.evaluator_seen = None
+        else:
+            self.progress.actor_seen.pop(c.name, None)
+
+    def _watch_silent(self, now: float | None = None) -> None:
+        """Actors and the evaluator silent for :meth:`_silence_limit` while their process runs
+        (their role loop publishes nothing while it waits in an env's step, reset or constructor):
 
         * one that has published stats and then none is stuck: its threads' stacks go to its log
           (SIGUSR1: faulthandler), then it is killed; :meth:`_supervise` restarts it, as it
@@ -349,14 +366,12 @@ class Launcher:
         if self.stop.is_set():
             return
         now = time.monotonic() if now is None else now
-        limit = self.cfg.actor.silent_restart_s
-        seen = self.progress.actor_seen
         for c in self.children:
-            if c.role != "actor" or c.proc is None or c.proc.poll() is not None:
+            if c.role not in ("actor", "evaluator") or c.proc is None or c.proc.poll() is not None or not self._hears(c):
                 continue
-            last = seen.get(c.name)
+            last, limit = self._last_heard(c), self._silence_limit(c)
             if last is not None and now - last >= limit:
-                seen.pop(c.name, None)  # until the restarted process reports
+                self._forget(c)
                 c.killed_for = f"killed by the launcher: no stats for {now - last:.0f} s, stuck"
                 log.warning("%s has published no stats for %.0f s although its process runs: stuck (in its env's step "
                             "or reset?). Its threads' stacks go to %s; restarting it", c.name, now - last, c.log_path)
@@ -366,7 +381,7 @@ class Launcher:
                 finally:
                     c.proc.kill()
                     c.proc.wait()
-            elif last is None and not c.unheard_told and now - c.spawned_at >= limit and self._hears(c):
+            elif last is None and not c.unheard_told and now - c.spawned_at >= limit:
                 c.unheard_told = True
                 dumped = catches_signal(c.proc.pid, signal.SIGUSR1)
                 if dumped:
@@ -522,7 +537,7 @@ class Launcher:
                 if self.updates_at_start is None and "updates" in p.learner:
                     self.updates_at_start = int(p.learner["updates"])
                 self._supervise()
-                self._watch_silent_actors()
+                self._watch_silent()
                 self._apply_resets()
                 self._check_done()
                 if live is not None:
