@@ -155,24 +155,32 @@ def test_a_reward_beyond_the_runs_bound_stops_the_run_at_once_naming_the_setting
     assert not _leftovers(run_id), _leftovers(run_id)
 
 
-def test_an_actor_stuck_in_its_env_is_restarted_with_its_stack_in_its_log(tmp_path, run_id, monkeypatch):
-    """The int walk never returning from one env's step 4 s after it was made (slot 0's first env,
-    seed 10000, so the actor has reported first):
-    the actor's role loop publishes nothing while it waits. ``zenrl run`` notices the silence
-    after actor.silent_restart_s, has the actor write its threads' stacks to its log (the env's
-    step among them) and restarts it, as a cluster's health check would; before, the run sat
-    with 0 env steps/s, said nothing, and killed the actor only at the end."""
+@pytest.mark.parametrize("stuck, sets, untouched", [
+    # slot 0's first env (seed 10000) 4 s after it was made, so the actor has reported first
+    ("actor-0", ("env.kwargs={hang_after_s: 4, hang_seed: 10000}", "actor.num_actors=1"), "evaluator"),
+    # the evaluator's first env in its first round (seed + evaluator.seed_offset): no evaluation
+    # comes, and a run with a target would never end
+    ("evaluator", ("env.kwargs={hang_after_s: 0.001, hang_seed: 1000000}", "evaluator.interval_s=1"), "actor-0"),
+])
+def test_a_process_stuck_in_its_env_is_restarted_with_its_stack_in_its_log(tmp_path, run_id, monkeypatch, stuck, sets,
+                                                                            untouched):
+    """The int walk never returning from one env's step: the process's role loop publishes
+    nothing while it waits. ``zenrl run`` notices the silence after actor.silent_restart_s (the
+    evaluator: the larger of that and 3 evaluator.interval_s), has the process write its threads'
+    stacks to its log (the env's step among them) and restarts it, as a cluster's health check
+    would; before, the run sat with 0 env steps/s (or no evaluation), said nothing, and killed the
+    process only at the end."""
     _user_envs(tmp_path, monkeypatch)
     p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "env.id=user_envs:IntWalk-v0",
-                                 "env.kwargs={hang_after_s: 4, hang_seed: 10000}", "actor.num_actors=1",
-                                 "actor.silent_restart_s=3", "target_return=null", "max_wall_s=25", timeout_s=300)
+                                 *sets, "actor.silent_restart_s=3",
+                                 "target_return=null", "max_wall_s=25", timeout_s=300)
     assert p.returncode == 0, (p.returncode, p.stderr[-3000:])
-    assert "actor-0 has published no stats for" in p.stderr and "restarting it" in p.stderr, p.stderr[-3000:]
+    assert f"{stuck} has published no stats for" in p.stderr and "restarting it" in p.stderr, p.stderr[-3000:]
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["restarts"]["actor-0"] >= 1, summary["restarts"]
-    log = (run_dir / "logs" / "actor-0.log").read_text()
+    assert summary["restarts"][stuck] >= 1 and summary["env_steps"] > 0, summary["restarts"]
+    assert not any(summary["restarts"].get(k) for k in (untouched, "learner", "replay")), summary["restarts"]
+    log = (run_dir / "logs" / f"{stuck}.log").read_text()
     assert "most recent call first" in log and "user_envs.py" in log and "in step" in log, log[-3000:]
-    assert summary["restarts"].get("learner", 0) == 0 and summary["restarts"].get("replay", 0) == 0
     assert not _leftovers(run_id), _leftovers(run_id)
 
 
@@ -200,24 +208,4 @@ def test_an_actor_stuck_making_its_envs_is_named_with_its_stack_and_left_running
     assert "max_wall_s" in summary["stop_reason"], summary["stop_reason"]
     stacks = [(run_dir / "logs" / f"actor-{i}.log").read_text() for i in (0, 1)]
     assert all("most recent call first" in s and "user_envs.py" in s and "in __init__" in s for s in stacks), stacks
-    assert not _leftovers(run_id), _leftovers(run_id)
-
-
-def test_an_evaluator_stuck_in_its_env_is_restarted_with_its_stack_in_its_log(tmp_path, run_id, monkeypatch):
-    """The int walk never returning from the step of the evaluator's first env in its first round
-    (seed 1,000,000: seed + evaluator.seed_offset): the evaluator publishes nothing while it waits,
-    so no evaluation comes and a run with a target would never end. ``zenrl run`` restarts it after
-    max(actor.silent_restart_s, 3 evaluator.interval_s) of silence, its stacks in its log; the
-    actors, on other seeds, go on."""
-    _user_envs(tmp_path, monkeypatch)
-    p, run_dir, logs = run_zenrl(tmp_path, "configs/cartpole_apex.yaml", run_id, "env.id=user_envs:IntWalk-v0",
-                                 "env.kwargs={hang_after_s: 0.001, hang_seed: 1000000}", "actor.silent_restart_s=3",
-                                 "evaluator.interval_s=1", "target_return=null", "max_wall_s=25", timeout_s=300)
-    assert p.returncode == 0, (p.returncode, p.stderr[-3000:])
-    assert "evaluator has published no stats for" in p.stderr and "restarting it" in p.stderr, p.stderr[-3000:]
-    summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["restarts"]["evaluator"] >= 1 and not summary["restarts"].get("actor-0"), summary["restarts"]
-    assert summary["env_steps"] > 0
-    log = (run_dir / "logs" / "evaluator.log").read_text()
-    assert "most recent call first" in log and "user_envs.py" in log and "in step" in log, log[-3000:]
     assert not _leftovers(run_id), _leftovers(run_id)
