@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT, free_port, wait_until, zenrl_pids
+from tests.conftest import ROOT, free_port, own_process_group, wait_until, zenrl_pids
 
 pytestmark = pytest.mark.integration
 
@@ -35,19 +35,17 @@ def zenrl(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
                           timeout=timeout_s)
 
 
-def _as_from_a_shell() -> None:
-    """In the child before exec: a process group of its own, and SIGHUP's default action (a test
-    run under ``nohup`` would hand down its ignore)."""
-    os.setpgid(0, 0)
-    signal.signal(signal.SIGHUP, signal.SIG_DFL)
-
-
 @contextlib.contextmanager
 def launched(cmd: list[str]):
     """``cmd`` (a ``zenrl run``) started in a process group of its own, as from a terminal's
-    shell, its output read at the end; killed if still running when the block ends."""
-    launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                preexec_fn=_as_from_a_shell)
+    shell (SIGHUP's default action: a test run under ``nohup`` would hand down its ignore), its
+    output read at the end; killed if still running when the block ends."""
+    hup = signal.signal(signal.SIGHUP, signal.SIG_DFL)  # inherited across exec, as ignored would be
+    try:
+        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                    **own_process_group())
+    finally:
+        signal.signal(signal.SIGHUP, hup)
     try:
         yield launcher
     finally:

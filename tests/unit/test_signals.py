@@ -102,6 +102,10 @@ HANGUP = """
 def test_a_hangup_stops_in_order_unless_the_process_was_started_to_ignore_it(inherited, after) -> None:
     """SIG_IGN: started under ``nohup`` (the ignore is set before exec and kept across it); the
     default is set explicitly, as this test itself may run under ``nohup``."""
-    p = subprocess.run([sys.executable, "-c", textwrap.dedent(HANGUP)], cwd=ROOT, capture_output=True, text=True,
-                       timeout=20, preexec_fn=lambda: signal.signal(signal.SIGHUP, inherited))
+    before = signal.signal(signal.SIGHUP, inherited)  # what the child inherits across exec
+    try:
+        p = subprocess.run([sys.executable, "-c", textwrap.dedent(HANGUP)], cwd=ROOT, capture_output=True, text=True,
+                           timeout=20)
+    finally:
+        signal.signal(signal.SIGHUP, before)
     assert p.returncode == 0 and p.stdout.strip() == after, (p.stdout, p.stderr)
