@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from zenrl.common.atomic_files import write_bytes_atomically
 from zenrl.common.errors import ConfigError
 
 try:
@@ -26,15 +27,9 @@ _ERROR_LINE = re.compile(r"^(zenrl: error: |[A-Za-z_][\w.]*(Error|Exception|Exit
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
-    """Write ``obj`` to ``path`` through a temporary file, so a reader sees the old or the new
-    whole; on an error (a full disk) the temporary file is removed and the old one stays."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(json.dumps(obj, indent=2, default=float))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    """``obj`` as JSON through :func:`~zenrl.common.atomic_files.write_bytes_atomically`: a
+    reader sees the old file or the new one whole; a failed write (a full disk) leaves no temp."""
+    write_bytes_atomically(path, json.dumps(obj, indent=2, default=float).encode())
 
 
 def write_launcher_info(run_dir: Path, run_id: str, router: str) -> None:
