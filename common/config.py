@@ -93,6 +93,7 @@ class ReplayConfig(_Section):
     quarantine_rejections: int = Field(20, ge=0, description="A source (the actor id in the key) with this many rejected chunks within quarantine_window_s has its traffic dropped for quarantine_s; 0 turns quarantine off.")
     quarantine_window_s: float = Field(10.0, gt=0, description="Window over which a source's rejected chunks are counted for quarantine.")
     quarantine_s: float = Field(60.0, gt=0, description="How long a quarantined source's chunks are dropped unread.")
+    replays_per_machine: int = Field(1, ge=1, le=4096, description="Replay services that share this machine's memory (or its container's limit): the replay's memory check, before it allocates, gives each 1/N of it. `zenrl run` sets it to the replays it starts (shards, league agents); set it where several replay services run on one machine otherwise.")
     shards: int = Field(1, ge=1, le=MAX_REPLAY_SHARDS, description="Replay services in the run (`zenrl replay --shard k`, k in 0..shards-1): actor slot i writes to shard i % shards, the learner samples across shards in proportion to each one's total priority (docs/architecture.md). capacity, max_bytes, min_size and samples_per_insert apply to each shard. 1: one replay on the unsharded keys.")
 
 

@@ -109,7 +109,7 @@ def check_one(checker: Checker, c: Chunk) -> Rejection | None:
 SLOT_OVERHEAD_BYTES = 8 + 1 + 16
 
 
-def memory_limit() -> tuple[int, str] | None:
+def machine_memory() -> tuple[int, str] | None:
     """The memory this process may use at most, and what sets it: the container's limit (cgroup
     v2 ``memory.max``, v1 ``memory.limit_in_bytes``) where one is below the machine's memory
     (``MemTotal``). None where neither can be read (not Linux)."""
@@ -130,13 +130,24 @@ def memory_limit() -> tuple[int, str] | None:
     return min(found) if found else None
 
 
-def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None = None, warn: bool = True) -> None:
+def memory_limit(share: int = 1) -> tuple[int, str] | None:
+    """What one replay may take: :func:`machine_memory`, or 1/``share`` of it where ``share``
+    replay services share the machine (``replay.replays_per_machine``)."""
+    limit = machine_memory()
+    if limit is None or share <= 1:
+        return limit
+    have, what = limit
+    return have // share, f"1/{share} of {what} (replay.replays_per_machine = {share})"
+
+
+def check_memory(items: int, bytes_per_item: int, limit: tuple[int, str] | None = None, warn: bool = True,
+                 share: int = 1) -> None:
     """Raise :class:`MemoryTooSmall` when a ring of ``items`` slots of ``bytes_per_item`` field
     bytes (allocated lazily: its pages are committed as it fills) could not fit in ``limit``
-    (default :func:`memory_limit`) once full: the replay would be killed for memory hours into a
-    run, restarted and killed again. With ``warn``, logs a warning when it would take more than
-    80% of it."""
-    limit = memory_limit() if limit is None else limit
+    (default :func:`memory_limit` of ``share``) once full: the replay would be killed for memory
+    hours into a run, restarted and killed again. With ``warn``, logs a warning when it would take
+    more than 80% of it."""
+    limit = memory_limit(share) if limit is None else limit
     if limit is None:
         return
     need = items * (bytes_per_item + SLOT_OVERHEAD_BYTES)
@@ -161,15 +172,16 @@ def allocate(c: Chunk, rcfg: Any, seed: int, vetted: bool, first_key: int | None
     # (all of it for full observations, a lower bound in frame mode), then the storage's own figure
     refs = c.msg.frame_refs() if c.msg.frames is not None else {}
     cols = spec_nbytes(spec_of_batch({k: v for k, v in c.data.items() if k not in refs}))
+    share = rcfg.replays_per_machine
     check_memory(rcfg.capacity if rcfg.max_bytes is None else min(rcfg.capacity, rcfg.max_bytes // max(cols, 1)), cols,
-                 warn=False)
+                 warn=False, share=share)
     try:
         store: Store = (FrameStore.allocate(c, rcfg, seed) if c.msg.frames is not None
                         else PlainStore.allocate(c, rcfg, seed, vetted))
     except MemoryError as e:
         raise MemoryTooSmall(f"replay.capacity = {rcfg.capacity:,}: the replay's storage cannot be allocated ({e}); "
                              "lower replay.capacity, or set replay.max_bytes to the memory the replay may take") from None
-    check_memory(store.buffer.capacity, store.buffer.bytes_per_item)
+    check_memory(store.buffer.capacity, store.buffer.bytes_per_item, share=share)
     if first_key is not None:
         store.buffer.start_at(first_key)
     return store

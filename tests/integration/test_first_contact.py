@@ -119,20 +119,39 @@ def _status_json(run_dir) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def test_a_replay_larger_than_the_machine_stops_the_run_at_once(tmp_path, run_id):
+def _machine_share_sets() -> tuple[str, ...]:
+    """Two replay shards, each a ring of 70% of the memory one replay may take (items of 55
+    bytes): each fits the machine alone, the two together do not."""
+    from zenrl.replay.store import SLOT_OVERHEAD_BYTES, machine_memory
+
+    have = machine_memory()[0]
+    return "replay.shards=2", f"replay.capacity={int(0.7 * have / (55 + SLOT_OVERHEAD_BYTES))}"
+
+
+@pytest.mark.parametrize("case", ["one", "shards"])
+def test_a_replay_larger_than_the_machine_stops_the_run_at_once(tmp_path, run_id, case):
     """replay.capacity of 10**11 transitions (terabytes once full): the replay, once the first
     chunk shows an item's size, stops on it before allocating (exit 2, not restarted) and the run
     stops with the line that names the setting; before, the ring was allocated lazily and
-    the replay killed for memory hours later, or every chunk failed to allocate."""
-    p = zenrl(*run_args(tmp_path, run_id, "replay.capacity=100000000000", "max_wall_s=240"), "--no-progress",
-              timeout_s=300)
+    the replay killed for memory hours later, or every chunk failed to allocate. ``shards``: two
+    shards that each fit the machine alone but not together; `zenrl run` gives each half of it
+    (before, each was checked against the whole machine, and the two filled it)."""
+    sets = ("replay.capacity=100000000000",) if case == "one" else _machine_share_sets()
+    p = zenrl(*run_args(tmp_path, run_id, *sets, "max_wall_s=240"), "--no-progress", timeout_s=300)
     assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
-    errors = [x for x in p.stderr.splitlines() if "replay stopped on a configuration error (not restarted)" in x]
-    assert errors and "replay.capacity = 100,000,000,000 items of" in errors[0] and "GiB once full, and" in errors[0] \
+    errors = [x for x in p.stderr.splitlines() if "stopped on a configuration error (not restarted)" in x]
+    assert errors and "items of" in errors[0] and "GiB once full, and" in errors[0] \
         and "lower replay.capacity, or set replay.max_bytes" in errors[0], p.stderr[-3000:]
+    if case == "one":
+        assert "replay.capacity = 100,000,000,000 items of" in errors[0]
+    else:
+        assert "and 1/2 of the machine's memory (replay.replays_per_machine = 2) is" in errors[0] \
+            or "and 1/2 of the container's memory limit" in errors[0], errors[0]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
-    assert summary["stop_reason"].startswith("replay failed on its configuration: replay.capacity = ")
-    assert summary["restarts"]["replay"] == 0 and not zenrl_pids(run_id)
+    name = "replay" if case == "one" else summary["stop_reason"].split()[0]
+    assert name in ("replay", "replay-0", "replay-1"), summary["stop_reason"]
+    assert summary["stop_reason"].startswith(f"{name} failed on its configuration: replay.capacity = ")
+    assert summary["restarts"][name] == 0 and not zenrl_pids(run_id)
 
 
 def test_status_ctrl_c_and_resume(tmp_path, run_id):

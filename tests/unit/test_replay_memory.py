@@ -64,7 +64,7 @@ def _service(checks: bool, capacity: int):
 
 def test_a_checked_replay_too_large_for_its_memory_stops_before_allocating(monkeypatch):
     # 1,000 slots of ITEM + overhead bytes against a limit one byte short of them
-    monkeypatch.setattr(store, "memory_limit", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES) - 1, "the limit"))
+    monkeypatch.setattr(store, "machine_memory", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES) - 1, "the limit"))
     allocated = []
     real = store.PlainStore.allocate
     monkeypatch.setattr(store.PlainStore, "allocate", classmethod(lambda cls, *a: allocated.append(1) or real(*a)))
@@ -79,7 +79,7 @@ def test_a_checked_replay_too_large_for_its_memory_stops_before_allocating(monke
 
 
 def test_a_replay_that_fits_is_allocated(monkeypatch):
-    monkeypatch.setattr(store, "memory_limit", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
+    monkeypatch.setattr(store, "machine_memory", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
     svc = _service(True, 1000)
     assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == B
     assert svc.buffer.capacity == 1000 and svc.buffer.bytes_per_item == ITEM and svc.ingestor.fatal is None
@@ -88,7 +88,7 @@ def test_a_replay_that_fits_is_allocated(monkeypatch):
 
 
 def test_max_bytes_sizes_the_ring_within_the_limit(monkeypatch):
-    monkeypatch.setattr(store, "memory_limit", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
+    monkeypatch.setattr(store, "machine_memory", lambda: (1000 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
     svc = ReplayService(load_config(None, ["replay.capacity=1000000", "replay.min_size=1", f"replay.max_bytes={500 * ITEM}"],
                                     environ={}), node=None, run_id="r")
     assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == B
@@ -98,7 +98,7 @@ def test_max_bytes_sizes_the_ring_within_the_limit(monkeypatch):
 
 def test_an_unchecked_replay_rejects_the_chunk_that_sized_it(monkeypatch):
     """Without the checks the item's size is the sender's: a chunk must not stop the replay."""
-    monkeypatch.setattr(store, "memory_limit", lambda: (100 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
+    monkeypatch.setattr(store, "machine_memory", lambda: (100 * (ITEM + SLOT_OVERHEAD_BYTES), "the limit"))
     svc = _service(False, 1000)
     assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == 0
     assert svc.ingestor.fatal is None and svc.stats_values()["rejected_memory"] == 1
@@ -107,10 +107,56 @@ def test_an_unchecked_replay_rejects_the_chunk_that_sized_it(monkeypatch):
 
 
 def test_a_replay_near_its_limit_is_warned_about_once(monkeypatch, caplog):
-    monkeypatch.setattr(store, "memory_limit", lambda: (int(1000 * (ITEM + SLOT_OVERHEAD_BYTES) / 0.9), "the limit"))
+    monkeypatch.setattr(store, "machine_memory", lambda: (int(1000 * (ITEM + SLOT_OVERHEAD_BYTES) / 0.9), "the limit"))
     with caplog.at_level(logging.WARNING, logger="zenrl.replay.store"):
         svc = _service(True, 1000)
         assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == B
     said = [r.getMessage() for r in caplog.records if "once full" in r.getMessage()]
     assert len(said) == 1 and "would take 90% of it" in said[0], said
     svc.close()
+
+
+def test_replays_sharing_a_machine_each_get_their_share(monkeypatch):
+    """replay.replays_per_machine = N (`zenrl run` sets it to the replays it starts): a ring that
+    fits the machine alone is refused when it does not fit 1/N of it."""
+    monkeypatch.setattr(store, "machine_memory", lambda: (10 * GIB, "the machine's memory"))
+    assert memory_limit(4) == (10 * GIB // 4, "1/4 of the machine's memory (replay.replays_per_machine = 4)")
+    assert memory_limit(1) == memory_limit() == (10 * GIB, "the machine's memory")
+    monkeypatch.setattr(store, "machine_memory", lambda: (1500 * (ITEM + SLOT_OVERHEAD_BYTES), "the machine's memory"))
+    for share, fits in ((1, True), (2, False)):
+        svc = ReplayService(load_config(None, ["replay.capacity=1000", "replay.min_size=1",
+                                               f"replay.replays_per_machine={share}"], environ={}), node=None, run_id="r")
+        assert svc.ingest_many([(_payload(1), "zenrl/r/transitions/a0")]) == (B if fits else 0)
+        if not fits:
+            assert "and 1/2 of the machine's memory (replay.replays_per_machine = 2) is" in str(svc.ingestor.fatal)
+        svc.close()
+
+
+def test_zenrl_run_tells_each_replay_how_many_share_the_machine(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from zenrl.launcher import supervisor
+    from zenrl.launcher.supervisor import Launcher
+
+    started = []
+
+    class Started:
+        pid = 1
+
+        def __init__(self, cmd, **_kw):
+            started.append(cmd)
+
+    monkeypatch.setattr(supervisor.subprocess, "Popen", Started)
+    root = Path(__file__).resolve().parents[2]
+    for cfg, sets, want in ((None, ["replay.shards=3"], 3), (None, [], 1),
+                            (root / "configs/burgerwar_league_pfsp.yaml", ["run_id=lg1"], None)):
+        la = Launcher(load_config(cfg, [f"runs_dir={tmp_path}", *sets], environ={}))
+        (la.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        replays = [c for c in la._plan() if c.role == "replay"]
+        want = len(replays) if want is None else want
+        assert len(replays) == want and (cfg is None or want > 1)
+        started.clear()
+        for c in replays:
+            la._spawn(c)
+        told = [cmd[cmd.index("--set") + 1] if "--set" in cmd else None for cmd in started]
+        assert told == ([f"replay.replays_per_machine={want}"] * want if want > 1 else [None]), told

@@ -230,6 +230,10 @@ class Launcher:
             self.agents = {a: c.model_copy(update={"league": c.league.model_copy(update={"self_reset": False})})
                            for a, c in agent_configs(self.cfg, self.run_id).items()}
             self.placement = None  # several learners share the CPUs: left to the OS
+        #: the replay services this launcher starts on this machine: each one's memory check
+        #: gets its share of the machine (replay.replays_per_machine)
+        self.replays_here = 0 if not self.algorithm.uses_replay else (
+            sum(a.replay.shards for a in self.agents.values()) if self.agents else self.cfg.replay.shards)
 
     def _stop_with(self, reason: str, exit_code: int = 0) -> None:
         """Stop the run for ``reason`` (the first reason given wins)."""
@@ -252,6 +256,8 @@ class Launcher:
     def _spawn(self, c: Child, extra: list[str] | None = None) -> None:
         cmd = [sys.executable, "-m", "zenrl.cli", c.role, "--config", str(c.config or self.run_dir / "config.yaml"),
                "--run-id", c.run_id or self.run_id, "--router", self.endpoint, *c.args, *(extra or [])]
+        if c.role == "replay" and self.replays_here > 1:
+            cmd += ["--set", f"replay.replays_per_machine={self.replays_here}"]
         # PYTHONSAFEPATH: `-m` would put the working directory first on sys.path, where a source
         # checkout's zenrl/ folder shadows the installed package (zenrl.common lives elsewhere)
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), "PYTHONSAFEPATH": "1"})
