@@ -23,6 +23,10 @@ receivers):
     first in memory with nothing else running (``learner_updates_per_s``: an upper bound of what
     a learner sharing the machine would take), ``--no-sampler`` leaves it out) running through
     every service round;
+  * ``store_only_sampled`` (``--images --ceiling``) - store-only rounds with the same sampler
+    sampling another replay, filled once before the rounds: ``ceiling_fraction_of_store_only``
+    = median of those / median store-only rate, the most any replay sampled as the service is can
+    take on this machine (its own ingest free), and ``service_fraction_of_ceiling``;
   * ``threads`` - per thread of the receiving process (the replay, the store-only receiver), over
     each round: CPU, wake-ups, preemptions and minor page faults per chunk (``/proc``; zenrl's
     threads are named, Zenoh's runtime names its own: ``rx-0``, ``tx-0``, ...);
@@ -45,6 +49,7 @@ Progress goes to stderr; the last stdout line is one JSON object.
     python bench/replay_service.py --quick    # one short round each (~30 s)
     python bench/replay_service.py --images   # image mode: 64x64x3 and 84x84x4-stack chunks (~5 min)
     python bench/replay_service.py --images --baseline ../main   # ... and main's replay, same rounds
+    python bench/replay_service.py --images --ceiling --sample-rate learner   # ... and the ceiling
     python bench/replay_service.py --checks-only   # the semantic checks' cost per chunk (~25 s)
 
 For diagnosis: ``--kinds``, ``--rounds``, ``--service-only``, ``--service-set KEY=VALUE`` (an
@@ -551,12 +556,22 @@ def pub_argv(role_mode: str, ep: str, run: str, pid: str, seed: int, duration: f
 
 
 def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: float, kind: str = "cartpole",
-              store_mb: float = 0.0, pub_mode: str = "raw", shm: bool = False, codec: str | None = None) -> dict[str, Any]:
+              store_mb: float = 0.0, pub_mode: str = "raw", shm: bool = False, codec: str | None = None,
+              sampled: tuple[str, float] | None = None) -> dict[str, Any]:
+    """One round of 2 publishers to a subscriber process (raw, or store-only with ``store_mb``).
+    ``sampled``: ``(run id, rate)`` of another, already filled replay that a learner-like sampler
+    samples through the round (what sampling costs the machine, beside a receiver that does no
+    work of its own beyond the store-only receiver's)."""
     from zenrl.common import protocol as P
 
     rrun = f"{run}-raw{r}"
     keys = P.Keys(rrun)
     sent_watch = SentWatch(node, keys.prefix)
+    sampler = None
+    if sampled is not None:
+        srun, rate = sampled
+        sampler = procs.start(f"rawsampler{r}", sampler_argv(ep, srun, shm, rate), capture=True)
+        wait_until(lambda: node.alive_now(P.Keys(srun).alive_role("benchsampler"), 1.0), 60, "sampler")
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
                                      "--idle", "5", "--max-s", str(duration + 120), "--kind", kind,
                                      "--store-mb", str(store_mb), *(["--shm"] if shm else [])], capture=True)
@@ -570,9 +585,13 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     sres = communicate(procs, f"rawsub{r}", sub, 60)
     node.put(f"{keys.prefix}/bench/release", b"1")
     pres = [communicate(procs, f"rawpub{r}-{k}", p, 30) for k, p in enumerate(pubs)]
-    return {"items_per_s": sres["items_per_s"], "mb_per_s": sres["mb_per_s"], "received_chunks": sres["messages"],
-            "sent_chunks": sent, "span_s": sres["span_s"],
-            "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres), "threads": sres.get("threads")}
+    out = {"items_per_s": sres["items_per_s"], "mb_per_s": sres["mb_per_s"], "received_chunks": sres["messages"],
+           "sent_chunks": sent, "span_s": sres["span_s"],
+           "sender_items_per_s": sum(x["send_rate_items_s"] for x in pres), "threads": sres.get("threads")}
+    if sampler is not None:
+        procs.stop(sampler)
+        out["sampler"] = communicate(procs, f"rawsampler{r}", sampler, 30)
+    return out
 
 
 def service_rate(samples: list[tuple[float, dict[str, Any]]], t_go: float, final: int) -> tuple[float | None, float]:
@@ -766,7 +785,6 @@ def checks_overhead(rounds: int, round_s: float) -> dict[str, Any]:
 
 
 def orchestrate(args: argparse.Namespace) -> int:
-    from zenrl.common import protocol as P
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
 
@@ -911,6 +929,7 @@ def orchestrate_images(args: argparse.Namespace) -> int:
     """Image mode: per kind, fresh replay processes and alternating raw / store-only / service
     rounds on the same frame-mode chunks (each chunk carries all IMAGE_CHUNK + n (+ stack)
     frames it names), a learner-like sampler running through every service round."""
+    from zenrl.common import protocol as P
     from zenrl.common.transport import Node, open_router
     from zenrl.launcher import free_port
 
@@ -941,8 +960,21 @@ def orchestrate_images(args: argparse.Namespace) -> int:
             # synthetic chunks of no registered env (6 actions, bare frames): the env checks' cost
             # is --checks-only's
             replays = start_replays(procs, node, ep, args, kind, IMAGE_CAPACITY, "replay.check_semantics=false")
+            ceiling = None
+            if args.ceiling and not args.service_only:
+                # a replay of its own, filled once, that the sampler of the store-only rounds samples
+                crun = f"bench{uuid.uuid4().hex[:8]}"
+                cproc = procs.start(f"replay-{kind}-ceiling", replay_argv(ep, crun, IMAGE_CAPACITY, args.shm,
+                                                                        "replay.check_semantics=false"))
+                wait_until(lambda: node.alive_now(P.Keys(crun).alive_role("replay"), 1.0), 60, "replay service (ceiling)")
+                cstats = StatsWatch(node, P.Keys(crun))
+                fill = service_round(procs, node, cstats, ep, crun, 0, duration, kind, shm=args.shm, tag="fill",
+                                     codec=args.codec)
+                log(f"[{kind}] the sampled replay filled: {fill['ingested_items']} items")
+                ceiling = (crun, cproc)
             raw: list[dict[str, Any]] = []
             store: list[dict[str, Any]] = []
+            store_sampled: list[dict[str, Any]] = []
             svc: dict[str, list[dict[str, Any]]] = {v: [] for v in replays}
             frames_mb = ring_mb(kind)
             for r in range(rounds):
@@ -958,6 +990,14 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                         f"({res['mb_per_s']:.1f} MB/s), {res['received_chunks']}/{res['sent_chunks']} chunks, "
                         f"{res['threads'] and res['threads']['us_per_chunk']} us CPU per chunk")
                     store.append(res)
+                    if ceiling is not None:
+                        res = raw_round(procs, node, ep, f"{next(iter(replays.values()))[0]}c", r, duration, kind,
+                                        store_mb=frames_mb, pub_mode="client", shm=args.shm, codec=args.codec,
+                                        sampled=(ceiling[0], kind_rate or 0.0))
+                        log(f"[{kind}] round {r} store-only receiver, sampler on another replay: "
+                            f"{res['items_per_s']:,.0f} items/s, {res['received_chunks']}/{res['sent_chunks']} chunks, "
+                            f"sampler {res['sampler'].get('batches_per_s', 0):.1f} batches/s")
+                        store_sampled.append(res)
                 order = list(replays) if r % 2 == 0 else list(replays)[::-1]
                 for variant in order:
                     run, p, stats = replays[variant]
@@ -970,6 +1010,8 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                     svc[variant].append(res)
             for _, p, _ in replays.values():
                 procs.stop(p)
+            if ceiling is not None:
+                procs.stop(ceiling[1])
             if args.service_only:
                 kinds[kind] = {"rounds": svc}
                 continue
@@ -998,6 +1040,15 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                     f"{pre}sample_batches_per_s": median_of(rs, "sample_batches_per_s"),
                     f"{pre}service_us_per_chunk_cpu": median_of([x["threads"] for x in rs], "us_per_chunk"),
                 })
+            if store_sampled:
+                # the most any replay can take while sampled as the service is: the store-only
+                # receiver's rate with the same sampler on the same machine (its replies served
+                # by another replay), as a fraction of the store-only receiver's rate
+                ss_med = statistics.median(x["items_per_s"] for x in store_sampled)
+                k["store_only_sampled_items_per_s"] = round(ss_med)
+                k["ceiling_fraction_of_store_only"] = round(ss_med / store_med, 3)
+                if k["service_ingest_items_per_s"]:
+                    k["service_fraction_of_ceiling"] = round(k["service_ingest_items_per_s"] / ss_med, 3)
             if "baseline" in svc and k["service_ingest_items_per_s"] and k["baseline_service_ingest_items_per_s"]:
                 k["service_vs_baseline"] = round(k["service_ingest_items_per_s"] / k["baseline_service_ingest_items_per_s"], 3)
             k.update({
@@ -1013,7 +1064,8 @@ def orchestrate_images(args: argparse.Namespace) -> int:
                 "chunk_items": IMAGE_CHUNK, "chunk_bytes": chunk_bytes,
                 **({"learner_updates_per_s": learner_rates[kind]} if kind in learner_rates else {}),
                 "final_replay_stats": {v: (st.snapshot()[-1][1] if st.snapshot() else None) for v, (_, _, st) in replays.items()},
-                "rounds": {"raw": raw, "store_only": store, **svc},
+                "rounds": {"raw": raw, "store_only": store, **({"store_only_sampled": store_sampled} if store_sampled else {}),
+                           **svc},
             })
             kinds[kind] = k
         out.update({
@@ -1034,6 +1086,8 @@ def orchestrate_images(args: argparse.Namespace) -> int:
         for kind in ([] if args.service_only else args.kinds):  # last keys of the JSON line: the ratios
             out[f"{kind}_store_only_ratio_vs_raw_zenoh"] = kinds[kind]["store_only_ratio_vs_raw_zenoh"]
             out[f"{kind}_ingest_ratio_vs_raw_zenoh"] = kinds[kind]["ingest_ratio_vs_raw_zenoh"]
+            if "ceiling_fraction_of_store_only" in kinds[kind]:
+                out[f"{kind}_ceiling_fraction_of_store_only"] = kinds[kind]["ceiling_fraction_of_store_only"]
             if "baseline_service_fraction_of_store_only" in kinds[kind]:
                 out[f"{kind}_baseline_service_fraction_of_store_only"] = kinds[kind]["baseline_service_fraction_of_store_only"]
             out[f"{kind}_service_fraction_of_store_only"] = kinds[kind]["service_fraction_of_store_only"]
@@ -1131,6 +1185,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", nargs="+", choices=IMAGE_KINDS, default=list(IMAGE_KINDS), help="--images: the kinds measured")
     ap.add_argument("--service-only", action="store_true",
                     help="--images: service rounds only (no raw, store-only or in-process reference; for diagnosis)")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="--images: also store-only rounds with the learner-like sampler sampling another, filled "
+                         "replay: ceiling_fraction_of_store_only, the most any replay sampled so can take")
     ap.add_argument("--rounds", type=int, default=None, help="rounds per measurement (default 3, 1 with --quick)")
     ap.add_argument("--images", action="store_true",
                     help="image mode: frame-mode chunks of 64x64x3 and of 84x84x4 stacks instead of CartPole chunks")
