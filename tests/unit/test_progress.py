@@ -95,3 +95,57 @@ def test_a_child_that_keeps_failing_stops_the_run_with_its_last_error(tmp_path):
         la._supervise()
         assert la.stop.is_set() and la.stop_reason == want and la.exit_code == want_rc, la.stop_reason
         assert la.children[0].restarts == 0
+
+
+def _eval(mean: float, version: int = 1):
+    import numpy as np
+
+    from zenrl.common import protocol as P
+
+    return P.EvalResult(version, version * 10, np.full(3, mean, np.float32)).encode()
+
+
+def test_summary_keeps_the_newest_evaluations_their_count_and_the_first_solved(tmp_path):
+    """summary.json is rewritten every 30 s: it keeps the newest MAX_KEPT_EVALS evaluations
+    (metrics.jsonl holds every one), how many there were, and the first that reached
+    target_return, across a resume, from a summary written before the bound too."""
+    import json
+
+    from zenrl.common.config import load_config
+    from zenrl.launcher.display import MAX_KEPT_EVALS
+    from zenrl.launcher.supervisor import Launcher
+
+    cfg = load_config(None, [f"runs_dir={tmp_path}", "run_id=ev", "target_return=400"], environ={})
+    la = Launcher(cfg)
+    n = MAX_KEPT_EVALS + 500
+    for i in range(n):  # the 11th reaches the target; later ones do not (the run went on)
+        la.progress.on_message("k", _eval(450.0 if i == 10 else 100.0 + i % 7, i))
+    s = la.summary()
+    assert len(s["evals"]) == MAX_KEPT_EVALS and s["evals_total"] == n
+    assert [e["version"] for e in s["evals"]] == list(range(500, n))
+    assert s["solved"] and s["first_solved"]["version"] == 10 and s["first_solved"]["mean"] == 450.0
+    assert s["first_solved"]["segment"] == 0
+
+    # a summary of an earlier version: every evaluation, no count, no first_solved
+    old = dict(s, evals=[dict(e, version=v) for v, e in enumerate([s["first_solved"]] * 1 + s["evals"] * 2)])
+    del old["evals_total"], old["first_solved"]
+    (tmp_path / "ev").mkdir(exist_ok=True)
+    (tmp_path / "ev" / "summary.json").write_text(json.dumps(old))
+    la = Launcher(cfg, resume=True)
+    la.progress.on_message("k", _eval(90.0, 7))
+    s2 = la.summary()
+    assert s2["evals_total"] == 1 + 2 * MAX_KEPT_EVALS + 1 and len(s2["evals"]) == MAX_KEPT_EVALS
+    assert s2["evals"][-1]["version"] == 7 and s2["evals"][-1]["segment"] == 1
+    assert s2["solved"] and s2["first_solved"]["version"] == 0 and s2["first_solved"]["mean"] == 450.0
+
+    # and one written with the bound: its count and first_solved carry on
+    (tmp_path / "ev" / "summary.json").write_text(json.dumps(s2))
+    la = Launcher(cfg, resume=True)
+    s3 = la.summary()
+    assert s3["evals_total"] == s2["evals_total"] and s3["first_solved"] == s2["first_solved"]
+    assert s3["evals"] == s2["evals"]
+
+    # no target: nothing is solved, and nothing kept for it
+    la = Launcher(load_config(None, [f"runs_dir={tmp_path}", "run_id=ev2"], environ={}))
+    la.progress.on_message("k", _eval(1e9))
+    assert la.summary()["solved"] is False and la.summary()["first_solved"] is None

@@ -14,6 +14,10 @@ import numpy as np
 from zenrl.common import protocol as P
 
 RATE_WINDOW_S = 5.0  # env steps/s in the progress display is measured over this window
+#: evaluations kept for summary.json, the newest (metrics.jsonl holds every one): at ~250
+#: bytes each, an evaluator every 0.5 s would otherwise grow the file and the launcher's
+#: memory ~40 MB a day, rewritten every 30 s
+MAX_KEPT_EVALS = 1000
 
 
 @dataclass
@@ -39,7 +43,13 @@ class Progress:
     actor_seen: dict[str, float] = field(default_factory=dict)
     #: monotonic time of the evaluator's last stats (it reports every evaluator.interval_s)
     evaluator_seen: float | None = None
+    #: the newest MAX_KEPT_EVALS evaluations; ``evals_total`` counts every one
     evals: list[dict[str, Any]] = field(default_factory=list)
+    evals_total: int = 0
+    #: set by the launcher (``target_return``): the first evaluation at or above it is kept in
+    #: ``first_solved`` however many follow
+    target: float | None = None
+    first_solved: dict[str, Any] | None = None
     recent_returns: list[float] = field(default_factory=list)
     env_steps_rate: float = 0.0
     # (time, total env steps) whenever the total changed, the last RATE_WINDOW_S seconds of them
@@ -94,11 +104,17 @@ class Progress:
                 self._actor(msg.actor_id, msg.env_steps)
                 self.recent_returns = (self.recent_returns + [float(x) for x in msg.returns])[-100:]
             elif isinstance(msg, P.EvalResult):
-                self.evals.append({"t": self.elapsed_s(), "version": msg.version, "updates": msg.updates,
-                                   "env_steps": self.env_steps, "mean": float(msg.returns.mean()),
-                                   "std": float(msg.returns.std()), "n": int(msg.returns.size),
-                                   "win_rate": None if msg.outcomes is None else float((msg.outcomes == 1).mean()),
-                                   "since_first_step": None if self.first_step_t is None else time.monotonic() - self.first_step_t})
+                e = {"t": self.elapsed_s(), "version": msg.version, "updates": msg.updates,
+                     "env_steps": self.env_steps, "mean": float(msg.returns.mean()),
+                     "std": float(msg.returns.std()), "n": int(msg.returns.size),
+                     "win_rate": None if msg.outcomes is None else float((msg.outcomes == 1).mean()),
+                     "since_first_step": None if self.first_step_t is None else time.monotonic() - self.first_step_t}
+                self.evals.append(e)
+                self.evals_total += 1
+                if self.target is not None and self.first_solved is None and e["mean"] >= self.target:
+                    self.first_solved = e
+                if len(self.evals) > MAX_KEPT_EVALS:
+                    del self.evals[0]
 
     def _actor(self, actor_id: str, steps: int) -> None:
         if steps > 0 and self.first_step_t is None:

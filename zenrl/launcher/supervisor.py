@@ -26,7 +26,7 @@ from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError, EnvOutputError
 from zenrl.actor.batch_env import stack_flat
 from zenrl.actor.env_guard import EnvGuard
-from zenrl.launcher.display import ENV_TROUBLES, Progress, TroubleWatch, endless_warning, render_table
+from zenrl.launcher.display import ENV_TROUBLES, MAX_KEPT_EVALS, Progress, TroubleWatch, endless_warning, render_table
 from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
                                       read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
                                       write_launcher_info)
@@ -169,6 +169,12 @@ class Child:
     unheard_told: bool = False
 
 
+def _reaches(e: Any, target: float | None) -> bool:
+    """Whether evaluation ``e`` (a summary.json entry, maybe of an older version) reached ``target``."""
+    return (target is not None and isinstance(e, dict) and isinstance(e.get("mean"), (int, float))
+            and e["mean"] >= target)
+
+
 def replay_children(shards: int, prefix: str = "", **kw: Any) -> list[Child]:
     """The replay service, or with ``replay.shards`` = N > 1 one per shard (``replay-<k>``, each
     with its own id, stats, log file and durable log folder ``shard-<k>``)."""
@@ -194,9 +200,18 @@ class Launcher:
         self._first_interrupt: float | None = None
         before = read_summary(self.run_dir) if resume else None
         self.earlier = earlier_segments(before)
-        self.earlier_evals = [e for e in (before or {}).get("evals", []) if isinstance(e, dict)]
+        # evaluations of the earlier segments: summary.json keeps the newest MAX_KEPT_EVALS, their
+        # count, and the first at or above target_return whenever it came
+        earlier_evals = [e for e in (before or {}).get("evals", []) if isinstance(e, dict)]
+        total = (before or {}).get("evals_total")
+        self.earlier_evals_total = total if type(total) is int and total >= len(earlier_evals) else len(earlier_evals)
+        self.earlier_evals = earlier_evals[-MAX_KEPT_EVALS:]
+        target = cfg.target_return
+        first = (before or {}).get("first_solved")
+        self.earlier_solved = next((e for e in (first, *earlier_evals) if _reaches(e, target)), None)
         self.progress = Progress(base_env_steps=sum(int(s.get("env_steps") or 0) for s in self.earlier),
-                                 base_elapsed_s=sum(float(s.get("wall_s") or 0.0) for s in self.earlier))
+                                 base_elapsed_s=sum(float(s.get("wall_s") or 0.0) for s in self.earlier),
+                                 target=target)
         if before and isinstance(before.get("learner"), dict):
             # the learner's counters continue from its checkpoint: show the last ones heard until
             # it reports again (the replay's size is not carried: it restarts empty unless durable)
@@ -623,15 +638,16 @@ class Launcher:
                    "updates_at_end": updates, "stop_reason": reason, "resumed": self.resume,
                    "startup_s": None if p.first_step_t is None else p.first_step_t - p.start,
                    "restarts": {c.name: c.restarts for c in self.children}}
-        evals = self.earlier_evals + [dict(e, segment=len(self.earlier)) for e in p.evals]
-        solved = None
-        if self.cfg.target_return is not None:
-            solved = next((e for e in evals if e["mean"] >= self.cfg.target_return), None)
+        evals = (self.earlier_evals + [dict(e, segment=len(self.earlier)) for e in p.evals])[-MAX_KEPT_EVALS:]
+        solved = self.earlier_solved
+        if solved is None and p.first_solved is not None:
+            solved = dict(p.first_solved, segment=len(self.earlier))
         return {"run_id": self.run_id, "stop_reason": reason, "wall_s": p.elapsed_s(now),
                 "startup_s": segment["startup_s"], "env_steps": p.env_steps, "learner": p.learner,
                 "replay": p.replay, **({"replays": p.replays} if len(p.replays) > 1 else {}),
-                **({"league": p.league} if p.league else {}), "evals": evals, "target_return": self.cfg.target_return,
-                "solved": solved is not None,
+                **({"league": p.league} if p.league else {}), "evals": evals,
+                "evals_total": self.earlier_evals_total + p.evals_total, "target_return": self.cfg.target_return,
+                "solved": solved is not None, "first_solved": solved,
                 "solve_s_since_first_step": None if solved is None else solved.get("since_first_step"),
                 "restarts": segment["restarts"], "segments": [*self.earlier, segment],
                 # this launch's actors' counts of their envs' problems (zenrl.actor.env_guard)
