@@ -103,27 +103,51 @@ def test_the_launchers_env_check_says_where_a_slow_env_waits(tmp_path, caplog, w
         assert lines == []
 
 
-def test_a_league_runs_other_agents_actors_are_not_told_unheard(tmp_path, caplog):
-    """The launcher hears the main agent's stats only: the other agents' actors are never heard,
-    which says nothing about them."""
+def test_a_league_runs_other_agents_actors_are_watched_too(tmp_path, caplog):
+    """The launcher's display shows the main agent's figures, but it hears every agent's actors
+    (their stats on each agent's run id, through a real router session): an exploiter's actor
+    that never published is named like the main agent's; one heard is not. Before, the other
+    agents' actors were never heard and never watched."""
     from pathlib import Path
+
+    from zenrl.common import protocol as P
+    from zenrl.common.transport import Node, open_router
+    from zenrl.launcher import free_port
 
     root = Path(__file__).resolve().parents[2]
     la = Launcher(load_config(root / "configs/burgerwar_league_pfsp.yaml", [f"runs_dir={tmp_path}", "run_id=lg1"],
                               environ={}))
     names = [c.name for c in la._plan() if c.role == "actor"]
     assert "main-actor-0" in names and "exploiter-actor-0" in names
-    main, other = _child(tmp_path, "main-actor-0", PLAIN), _child(tmp_path, "exploiter-actor-0", PLAIN)
-    main.agent, other.agent = "main", "exploiter"
-    la.children = [main, other]
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router([ep])
+    node, sender = Node(session=router), Node(ep, 10.0)
+    kids = [_child(tmp_path, n, PLAIN) for n in ("main-actor-0", "exploiter-actor-0", "exploiter-actor-1")]
+    for c in kids:
+        c.agent = c.name.split("-")[0]
+    la.children = kids
     try:
+        la._listen(node)
+        # exploiter-actor-1 reports on its agent's run id; the others say nothing
+        ex = P.Keys(la.agents["exploiter"].run_id)
+        stats = P.Stats("actor", "exploiter-actor-1", time.time(), {"env_steps": 5}).encode()
+        deadline = time.monotonic() + 20
+        while "exploiter-actor-1" not in la.progress.actor_seen and time.monotonic() < deadline:
+            sender.put(ex.stats("actor", "exploiter-actor-1"), stats)
+            time.sleep(0.05)
+        assert "exploiter-actor-1" in la.progress.actor_seen
+        assert la.progress.env_steps == 0  # heard alive, not counted in the main agent's figures
         with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
             la._watch_silent()
-        assert [r.getMessage().split()[0] for r in caplog.records] == ["main-actor-0"]
+        told = sorted(r.getMessage().split()[0] for r in caplog.records)
+        assert told == ["exploiter-actor-0", "main-actor-0"], told
     finally:
         for c in la.children:
             c.proc.kill()
             c.proc.wait()
+        sender.close()
+        node.close()
+        router.close()
 
 
 @pytest.mark.parametrize("interval_s, silent_s, killed", [(1, 100, True), (30, 80, False), (30, 95, True)])
@@ -148,3 +172,26 @@ def test_a_silent_evaluator_is_restarted_after_three_of_its_intervals_at_least(t
         if ev.proc.poll() is None:
             ev.proc.kill()
         ev.proc.wait()
+
+
+def test_a_restarted_actor_is_judged_from_its_own_start(tmp_path, monkeypatch, caplog):
+    """An actor restarted (after a crash, a league reset) is not heard yet: its predecessor's
+    last stats must not count for it, or a slow start would be killed as stuck, restarted,
+    killed again, until the run stopped on its restarts."""
+    from zenrl.launcher import supervisor
+
+    la = Launcher(load_config(None, [f"runs_dir={tmp_path}", "actor.silent_restart_s=60"], environ={}))
+    (la.run_dir / "logs").mkdir(parents=True)
+    real = subprocess.Popen
+    monkeypatch.setattr(supervisor.subprocess, "Popen", lambda cmd, **kw: real([sys.executable, "-c", PLAIN], **kw))
+    c = Child("actor-0", "actor", ["--id", "actor-0"])
+    la.progress.actor_seen["actor-0"] = time.monotonic() - 50.0  # its predecessor's last stats
+    la._spawn(c)
+    la.children = [c]
+    try:
+        with caplog.at_level(logging.WARNING, logger="zenrl.launcher"):
+            la._watch_silent(now=time.monotonic() + 20.0)  # 70 s after those stats, 20 s after its start
+        assert c.proc.poll() is None and not caplog.records, [r.getMessage() for r in caplog.records]
+    finally:
+        c.proc.kill()
+        c.proc.wait()

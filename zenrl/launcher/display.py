@@ -116,6 +116,17 @@ class Progress:
                 if len(self.evals) > MAX_KEPT_EVALS:
                     del self.evals[0]
 
+    def on_actor_stats(self, key: str, payload: bytes) -> None:
+        """An actor's stats in a league run's other agent: only that it was heard (its env steps
+        and troubles are its agent's, not the main agent's figures this display shows)."""
+        try:
+            msg = P.decode_any(payload)
+        except P.ProtocolError:
+            return
+        if isinstance(msg, P.Stats) and msg.role == "actor":
+            with self.lock:
+                self.actor_seen[msg.id] = time.monotonic()
+
     def _actor(self, actor_id: str, steps: int) -> None:
         if steps > 0 and self.first_step_t is None:
             self.first_step_t = time.monotonic()

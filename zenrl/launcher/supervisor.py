@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from zenrl import EXIT_CONFIG
+from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError, EnvOutputError
 from zenrl.actor.batch_env import stack_flat
@@ -281,7 +282,10 @@ class Launcher:
         c.log_path = self.run_dir / "logs" / f"{c.name}.log"
         with open(c.log_path, "ab") as f:
             c.proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        # a new process: not heard yet (the last stats were its predecessor's, which a slow start
+        # would otherwise outlive into a kill as "stuck")
         c.spawned_at, c.unheard_told = time.monotonic(), False
+        self._forget(c)
         log.debug("started %s (pid %d): %s", c.name, c.proc.pid, " ".join(cmd))
 
     def _agent_children(self, aid: str, fresh: bool = False, init: Path | None = None) -> list[Child]:
@@ -352,8 +356,23 @@ class Launcher:
                         else None)
 
     def _hears(self, c: Child) -> bool:
-        """Whether this launcher subscribes to ``c``'s stats: in a league run, the main agent's only."""
-        return not self.agents or c.agent == self.cfg.league.main_id
+        """Whether this launcher subscribes to ``c``'s stats: every actor's (in a league run, each
+        agent's, :meth:`_listen`), the evaluator's (the main agent's only one)."""
+        return not self.agents or c.role == "actor" or c.agent == self.cfg.league.main_id
+
+    def _listen(self, node: Any) -> None:
+        """Subscribe the live display to the run's stats, episodes and evaluations (in a league
+        run the main agent's, the league's, and the other agents' actors' to hear them alive)."""
+        k = P.Keys(self.run_id)
+        if self.agents:  # the live figures are the main agent's; the league's stats carry resets
+            main = self.cfg.league.main_id
+            k = P.Keys(self.agents[main].run_id or "")
+            node.subscribe(P.Keys(self.run_id).stats("league", "league"), self._on_league_stats)
+            for aid, acfg in self.agents.items():
+                if aid != main:
+                    node.subscribe(f"{P.Keys(acfg.run_id or '').prefix}/stats/actor/*", self.progress.on_actor_stats)
+        for key in (k.stats_all, k.episodes_all, k.eval):
+            node.subscribe(key, self.progress.on_message)
 
     def _silence_limit(self, c: Child) -> float:
         """Seconds without stats after which ``c`` counts as silent: ``actor.silent_restart_s``,
@@ -468,7 +487,6 @@ class Launcher:
 
     # -- main --------------------------------------------------------------------------------
     def run(self) -> int:
-        from zenrl.common import protocol as P
         from zenrl.common.metrics import MetricsWriter
         from zenrl.common.signals import on_stop_signals
         from zenrl.common.transport import Node, open_router
@@ -504,12 +522,7 @@ class Launcher:
             log.info("run %s: router on %s, logs in %s (zenrl status %s)", self.run_id, listen, self.run_dir / "logs",
                      self.run_dir)
             self._metrics = MetricsWriter(self.run_dir)
-            k = P.Keys(self.run_id)
-            if self.agents:  # the live figures are the main agent's; the league's stats carry resets
-                k = P.Keys(self.agents[self.cfg.league.main_id].run_id or "")
-                node.subscribe(P.Keys(self.run_id).stats("league", "league"), self._on_league_stats)
-            for key in (k.stats_all, k.episodes_all, k.eval):
-                node.subscribe(key, self.progress.on_message)
+            self._listen(node)
             self.children = self._plan()
             for c in self.children:
                 self._spawn(c)
