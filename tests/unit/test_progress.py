@@ -149,3 +149,21 @@ def test_summary_keeps_the_newest_evaluations_their_count_and_the_first_solved(t
     la = Launcher(load_config(None, [f"runs_dir={tmp_path}", "run_id=ev2"], environ={}))
     la.progress.on_message("k", _eval(1e9))
     assert la.summary()["solved"] is False and la.summary()["first_solved"] is None
+
+
+def test_a_run_with_more_actors_than_the_machine_holds_is_told():
+    from zenrl.launcher.display import ACTOR_PRIVATE_BYTES, crowding_warnings
+
+    gib = 1 << 30
+    mem = (24 * gib, "the machine's memory")
+    assert crowding_warnings(8, 2, mem) == []  # 4 per CPU, 1.25 GiB: fine
+    cpu = crowding_warnings(9, 2, mem)
+    assert len(cpu) == 1 and cpu[0].startswith("9 actor processes on 2 CPUs: each takes ~2 s of CPU to start")
+    assert "actor.envs_per_actor" in cpu[0]
+    many = crowding_warnings(500, 2, mem)  # ~78 GiB of actors on 24
+    assert len(many) == 2 and many[1].startswith("500 actor processes take 78.1 GiB or more of their own")
+    assert "the machine's memory is 24.0 GiB: the kernel will kill processes for memory" in many[1]
+    half = crowding_warnings(100, 64, mem)  # 15.6 GiB: more than half, less than all
+    assert len(half) == 1 and "15.6 GiB" in half[0] and "kill" not in half[0]
+    assert crowding_warnings(int(12 * gib // ACTOR_PRIVATE_BYTES), 64, mem) == []  # exactly half
+    assert crowding_warnings(500, 0, None) == []  # nothing known: nothing said

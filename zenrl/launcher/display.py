@@ -240,6 +240,31 @@ def endless_warning(p: Progress, env_id: str, now: float | None = None, after_s:
             "env.max_episode_steps")
 
 
+#: memory an actor process holds of its own (private, not shared with the others: Python, torch,
+#: its envs), at least: a CartPole actor's is ~160 MB
+ACTOR_PRIVATE_BYTES = 160 << 20
+#: actor processes per usable CPU above which a run is told it has too many
+ACTORS_PER_CPU = 4
+
+
+def crowding_warnings(actors: int, cpus: int, memory: tuple[int, str] | None) -> list[str]:
+    """Lines for a run that starts more actor processes than the machine holds: more than
+    ACTORS_PER_CPU per usable CPU, or whose actors alone would take more than half of ``memory``
+    (:func:`zenrl.replay.store.machine_memory`) at ACTOR_PRIVATE_BYTES each."""
+    out = []
+    fewer = "fewer actors with more envs each (actor.envs_per_actor) step as many envs for less"
+    if cpus > 0 and actors > ACTORS_PER_CPU * cpus:
+        out.append(f"{actors} actor processes on {cpus} CPU{'s' if cpus > 1 else ''}: each takes ~2 s of CPU to "
+                   f"start and they share the CPUs with the learner and the replay; {fewer}")
+    if memory is not None and actors * ACTOR_PRIVATE_BYTES > memory[0] // 2:
+        need, have = actors * ACTOR_PRIVATE_BYTES / (1 << 30), memory[0] / (1 << 30)
+        out.append(f"{actors} actor processes take {need:.1f} GiB or more of their own (~{ACTOR_PRIVATE_BYTES >> 20} MB "
+                   f"each at least), and {memory[1]} is {have:.1f} GiB"
+                   + (": the kernel will kill processes for memory" if need > have else "")
+                   + f"; {fewer}")
+    return out
+
+
 def render_table(run_id: str, line: dict[str, Any], stop_reason: str = ""):
     """The live table of :meth:`Progress.status_line` (rates as rates, the win rate in %)."""
     from rich.table import Table

@@ -27,7 +27,8 @@ from zenrl.common.config import RunConfig
 from zenrl.common.errors import ConfigError, EnvOutputError
 from zenrl.actor.batch_env import stack_flat
 from zenrl.actor.env_guard import EnvGuard
-from zenrl.launcher.display import ENV_TROUBLES, MAX_KEPT_EVALS, Progress, TroubleWatch, endless_warning, render_table
+from zenrl.launcher.display import (ENV_TROUBLES, MAX_KEPT_EVALS, Progress, TroubleWatch, crowding_warnings,
+                                    endless_warning, render_table)
 from zenrl.launcher.runfolder import (SUMMARY_FILE, earlier_segments, holds_a_run, last_error_line, lock_run_folder,
                                       read_summary, remove_launcher_info, unlock_run_folder, write_json_atomic,
                                       write_launcher_info)
@@ -524,6 +525,11 @@ class Launcher:
             self._metrics = MetricsWriter(self.run_dir)
             self._listen(node)
             self.children = self._plan()
+            from zenrl.replay.store import machine_memory
+
+            for line in crowding_warnings(sum(c.role == "actor" for c in self.children), len(every_cpu),
+                                          machine_memory()):
+                log.warning("%s", line)
             for c in self.children:
                 self._spawn(c)
             self._loop()
