@@ -491,6 +491,7 @@ class Launcher:
         from zenrl.common.metrics import MetricsWriter
         from zenrl.common.signals import on_stop_signals
         from zenrl.common.transport import Node, open_router
+        from zenrl.replay.store import machine_memory
 
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"), sort_keys=False))
@@ -525,8 +526,6 @@ class Launcher:
             self._metrics = MetricsWriter(self.run_dir)
             self._listen(node)
             self.children = self._plan()
-            from zenrl.replay.store import machine_memory
-
             for line in crowding_warnings(sum(c.role == "actor" for c in self.children), len(every_cpu),
                                           machine_memory()):
                 log.warning("%s", line)
