@@ -570,8 +570,7 @@ def raw_round(procs: Procs, node: Any, ep: str, run: str, r: int, duration: floa
     sampler = None
     if sampled is not None:
         srun, rate = sampled
-        sampler = procs.start(f"rawsampler{r}", sampler_argv(ep, srun, shm, rate), capture=True)
-        wait_until(lambda: node.alive_now(P.Keys(srun).alive_role("benchsampler"), 1.0), 60, "sampler")
+        sampler = start_sampler(procs, node, f"rawsampler{r}", ep, srun, shm, rate)
     sub = procs.start(f"rawsub{r}", [str(Path(__file__).resolve()), "--role", "rawsub", "--router", ep, "--run", rrun,
                                      "--idle", "5", "--max-s", str(duration + 120), "--kind", kind,
                                      "--store-mb", str(store_mb), *(["--shm"] if shm else [])], capture=True)
@@ -622,6 +621,15 @@ def sampler_argv(ep: str, run: str, shm: bool, rate: float, duration: float = 36
             "--rate", str(rate), *(["--shm"] if shm else [])]
 
 
+def start_sampler(procs: Procs, node: Any, name: str, ep: str, run: str, shm: bool, rate: float) -> subprocess.Popen:
+    """The learner-like sampler of :func:`sampler_argv` on the replay of ``run``, once it is up."""
+    from zenrl.common import protocol as P
+
+    p = procs.start(name, sampler_argv(ep, run, shm, rate), capture=True)
+    wait_until(lambda: node.alive_now(P.Keys(run).alive_role("benchsampler"), 1.0), 60, "sampler")
+    return p
+
+
 def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str, r: int,
                   duration: float, kind: str = "cartpole", shm: bool = False, replay_pid: int | None = None,
                   sample_rate: float | None = None, tag: str = "", codec: str | None = None) -> dict[str, Any]:
@@ -635,8 +643,7 @@ def service_round(procs: Procs, node: Any, stats: StatsWatch, ep: str, run: str,
     sent_watch = SentWatch(node, keys.prefix)
     sampler = None
     if sample_rate is not None:
-        sampler = procs.start(f"sampler{tag}{r}", sampler_argv(ep, run, shm, sample_rate), capture=True)
-        wait_until(lambda: node.alive_now(keys.alive_role("benchsampler"), 1.0), 60, "sampler")
+        sampler = start_sampler(procs, node, f"sampler{tag}{r}", ep, run, shm, sample_rate)
     pubs = [procs.start(f"svcpub{tag}{r}-{k}", pub_argv("client", ep, run, f"pub{r}-{k}", 100 + k, duration, kind, shm, codec),
                         capture=True) for k in range(N_PUBLISHERS)]
     # the publishers' warm-up chunks must be in before the clock starts
