@@ -274,6 +274,12 @@ def _check_league_services(zs: dict[str, dict[str, Any]], parser: Any) -> None:
     assert set(by_agent) == set(cfg.league.agents)
     for agent, roles in by_agent.items():
         assert {"replay", "learner", "actor"} <= roles, (agent, roles)
+    # the agents' replays share the host: each checks its ring against its share of the memory
+    replays = [n for n, svc in zs.items() if svc["command"][0] == "replay"]
+    for name in replays:
+        env = {k: str(v) for k, v in zs[name]["environment"].items()}
+        rcfg = load_config(host_path(zs[name], parser.parse_args(zs[name]["command"]).config, named), environ=env)
+        assert rcfg.replay.replays_per_machine == len(replays), (name, rcfg.replay.replays_per_machine)
 
 
 @pytest.mark.parametrize("files", [(COMPOSE, SECURE), (COMPOSE, LEAGUE, SECURE, LEAGUE_SECURE)],
