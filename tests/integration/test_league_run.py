@@ -53,6 +53,8 @@ def test_a_league_of_any_algorithm(tmp_path, run_id, algo):
     opponents from the league and report their matches (main against the bots and itself, the
     exploiter against main); IMPALA and A3C agents run without a replay."""
     sets = [s for s in SETS if not s.startswith(("max_wall_s", "league.exploiter_reset_s"))]
+    if algo == "r2d2":  # its capacity counts sequences of 80 steps (~127 KB each here), not transitions
+        sets += ["replay.capacity=4000", 'league.agents.exploiter.overrides={"replay.capacity": 2000}']
     p, run_dir, logs = run_zenrl(tmp_path, "configs/burgerwar_league_pfsp.yaml", run_id, *sets, f"algo={algo}",
                                  "max_wall_s=110", "league.exploiter_init=fresh", timeout_s=600)
     assert p.returncode == 0, (p.stderr[-3000:], logs)
