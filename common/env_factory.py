@@ -35,10 +35,17 @@ def make_env(cfg: EnvConfig, render_mode: str | None = None) -> gym.Env:
 def _wire_space(space: gym.Space) -> gym.Space:
     """The observation space as zenrl ships it (:func:`zenrl.common.specs.obs_fields`'s rule): a
     uint8 Box stays, any other Box becomes float32 (same bounds), a MultiBinary a float32 Box of
-    0/1, a Discrete stays (its int64 index); a Dict of those, each converted. Other spaces are
-    left to the spec's refusal."""
+    0/1, a Discrete stays (its int64 index); a Dict of those, each converted; a Tuple a Dict of
+    its members keyed ``"0"``, ``"1"``, ... (Blackjack's ``Tuple(Discrete(32), Discrete(11),
+    Discrete(2))``: three one-hot encoded fields), and a 1-D MultiDiscrete a Dict of its
+    Discretes, likewise. Other spaces are left to the spec's refusal."""
     if isinstance(space, gym.spaces.Dict):
         return gym.spaces.Dict({k: _wire_space(v) for k, v in space.spaces.items()})
+    if isinstance(space, gym.spaces.Tuple):
+        return gym.spaces.Dict({str(i): _wire_space(v) for i, v in enumerate(space.spaces)})
+    if isinstance(space, gym.spaces.MultiDiscrete) and len(space.shape) == 1:
+        return gym.spaces.Dict({str(i): gym.spaces.Discrete(int(n), start=int(s0))
+                                for i, (n, s0) in enumerate(zip(space.nvec, space.start))})
     if isinstance(space, gym.spaces.MultiBinary):
         return gym.spaces.Box(0.0, 1.0, tuple(space.shape), np.float32)
     if isinstance(space, gym.spaces.Box) and space.dtype != box_wire_dtype(space.dtype):
@@ -66,14 +73,19 @@ class WireObservations(gym.ObservationWrapper):
         self.observation_space = wire
 
     def observation(self, obs):
-        return _cast(obs, self.observation_space)
+        return _cast(obs, self.env.observation_space, self.observation_space)
 
 
-def _cast(obs, space: gym.Space):
+def _cast(obs, space: gym.Space, wire: gym.Space):
+    """``obs`` of the env's ``space`` as an observation of ``wire`` (:func:`_wire_space` of it)."""
     if isinstance(space, gym.spaces.Dict):
-        return {k: _cast(obs[k], sub) for k, sub in space.spaces.items()}
-    if isinstance(space, gym.spaces.Box):
-        return np.asarray(obs, space.dtype)
+        return {k: _cast(obs[k], space.spaces[k], sub) for k, sub in wire.spaces.items()}
+    if isinstance(space, gym.spaces.Tuple):
+        return {str(i): _cast(o, s, wire.spaces[str(i)]) for i, (o, s) in enumerate(zip(obs, space.spaces))}
+    if isinstance(space, gym.spaces.MultiDiscrete):
+        return {str(i): np.int64(v) for i, v in enumerate(np.asarray(obs).reshape(-1))}
+    if isinstance(wire, gym.spaces.Box):
+        return np.asarray(obs, wire.dtype)
     return obs
 
 

@@ -86,7 +86,8 @@ def box_wire_dtype(dtype: Any) -> str:
 
 
 def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
-    """The flat observation fields of a gymnasium space (Box, Discrete, or a Dict of those):
+    """The flat observation fields of a gymnasium space (Box, Discrete, or a Dict of those; make_env
+    turns a Tuple or a MultiDiscrete into a Dict first):
     ``{"obs": ...}`` or ``{"obs/<key>": ...}``. The one rule for the dtypes on the wire: a uint8
     Box stays uint8 (images), any other Box is float32, a Discrete is int64 (its index, with
     ``categories`` set: the networks one-hot encode it). The networks' input
@@ -108,7 +109,7 @@ def obs_fields(space: Any, prefix: str = "obs") -> dict[str, ObsField]:
         low = np.broadcast_to(np.asarray(space.low, np.float64), space.shape).copy()
         high = np.broadcast_to(np.asarray(space.high, np.float64), space.shape).copy()
         return {prefix: ObsField(ArraySpec(tuple(space.shape), dtype), low, high)}
-    raise ValueError(f"observation space {space} is not supported (Box, Discrete or Dict of those)")
+    raise ValueError(f"observation space {space} is not supported (Box, Discrete, MultiBinary, 1-D MultiDiscrete, or a Dict or Tuple of those)")
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
