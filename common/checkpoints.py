@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Mapping
 import torch
 
 from zenrl.common.config import NetworkConfig, RunConfig, config_from_dict
-from zenrl.common.errors import CheckpointError
+from zenrl.common.errors import CheckpointError, ConfigError
 from zenrl.common.networks import ActorCritic, QNetwork
 from zenrl.common.recurrent import RecurrentQNetwork
 from zenrl.common.specs import ArraySpec
@@ -230,6 +230,35 @@ def training_state_class(algo: str, where: str = "checkpoint") -> type[TrainingS
         return TRAINING_STATES[algo]
     except (KeyError, TypeError):
         raise CheckpointError(f"{where} is of unknown algorithm {algo!r}; one of {sorted(TRAINING_STATES)}") from None
+
+
+def weights_cap(cfg: RunConfig) -> int:
+    """The largest weights message the run can carry: ``transport.max_message_bytes`` (a learner's
+    broadcast and every reply to a weights query), and with a league ``league.max_weights_bytes``
+    (the snapshots it serves)."""
+    cap = cfg.transport.max_message_bytes
+    return min(cap, cfg.league.max_weights_bytes) if cfg.league.enabled else cap
+
+
+def check_weights_fit(cfg: RunConfig, spec: Mapping[str, ArraySpec], n_actions: int) -> None:
+    """:class:`ConfigError` when the run's policy network (``spec``, ``n_actions``) has more
+    parameter bytes than one weights message may carry (:func:`weights_cap`). The network is
+    built on torch's meta device: its size is known without allocating it (a network too large for
+    the machine is refused here, not by the allocator). Without the check, the learner failed on
+    its first broadcast and was restarted until the run gave up, and actors never got weights."""
+    try:
+        with torch.device("meta"):
+            net = training_state_class(cfg.algo).run_policy_network(spec, n_actions, cfg)
+    except Exception:  # noqa: BLE001 - a network that cannot be built is the learner's to report
+        return
+    n = sum(p.numel() for p in net.parameters())
+    nbytes = sum(p.numel() * p.element_size() for p in net.parameters())
+    cap = weights_cap(cfg)
+    if nbytes > cap:
+        which = "transport.max_message_bytes" + (" / league.max_weights_bytes" if cfg.league.enabled else "")
+        raise ConfigError(f"network.hidden = {list(cfg.network.hidden)}: the {cfg.algo} network has {n:,} parameters "
+                          f"({nbytes / 2**20:,.1f} MiB), more than one weights message may carry ({which} = "
+                          f"{cap / 2**20:,.1f} MiB): lower network.hidden, or raise {which.split(' ')[0]}")
 
 
 # --------------------------------------------------------------------------------------------

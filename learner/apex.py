@@ -202,6 +202,8 @@ class ApexLearner(LearnerBase):
         # one budget for both joins, inside the launcher's 5 s grace after SIGTERM (the final
         # checkpoint is already written): what is unsent then is lost with the process
         deadline = time.monotonic() + CLOSE_BUDGET_S
-        self._pf.stop(timeout=1.0)
-        self._sender.close(timeout=deadline - time.monotonic())
+        if getattr(self, "_pf", None) is not None:  # a start that failed before it (its error is the one to see)
+            self._pf.stop(timeout=1.0)
+        if getattr(self, "_sender", None) is not None:
+            self._sender.close(timeout=deadline - time.monotonic())
 

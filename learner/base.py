@@ -14,7 +14,7 @@ import torch
 
 from zenrl.common import protocol as P
 from zenrl.common.config import RunConfig, config_from_dict
-from zenrl.common.checkpoints import TrainingState
+from zenrl.common.checkpoints import TrainingState, check_weights_fit
 from zenrl.common.env_factory import make_env
 from zenrl.common.errors import CheckpointError, ConfigError
 from zenrl.common.guard_rule import GuardRule
@@ -100,6 +100,7 @@ class LearnerBase:
         self.device = resolve_device(cfg.learner.device)
         #: the env's guard rule, for learner.guard_imitation (None when off)
         self.spec, self.n_actions, self.guard_rule = env_facts(cfg)
+        check_weights_fit(cfg, self.spec, self.n_actions)  # before the network is built: ConfigError, exit 2
         torch.manual_seed(cfg.seed)
 
     def wants_resume(self, resume: str) -> bool:

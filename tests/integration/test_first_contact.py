@@ -75,6 +75,10 @@ def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
     (("algo=r2d2", "env.id=Pendulum-v1"), "algo: r2d2 needs a Discrete action space, got Box(-1.0, 1.0, (1,), float32); "
                                           "algo: impala (IMPALA / APPO) and a3c take continuous (Box) actions"),
     (("env.kwargs={gravity_typo: 1}",), "unexpected keyword argument 'gravity_typo'"),
+    # a network whose weights no message can carry (the second, 40 GB, is never allocated)
+    (("network.hidden=[4200,4200]",), "the apex network has 17,677,803 parameters (67.4 MiB), more than one "
+                                      "weights message may carry (transport.max_message_bytes = 64.0 MiB)"),
+    (("algo=impala", "network.hidden=[100000,100000]"), "the impala network has 10,000,"),
     (("env.id=tests.integration.custom_envs:IntWalk-v0", "env.kwargs={obs_size: 3}"),
      "zenrl: error: env tests.integration.custom_envs:IntWalk-v0 gave observation obs of shape (3,); its "
      "observation_space says (2,)"),

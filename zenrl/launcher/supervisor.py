@@ -120,6 +120,7 @@ def check_env_now(cfg: RunConfig) -> None:
     """Make, inspect and reset the run's env once, here, before anything starts: a mistake in
     ``env.id`` / ``env.kwargs`` or an env zenrl cannot learn (continuous actions) is then one
     :class:`ConfigError` line instead of every child failing in its log."""
+    from zenrl.common.checkpoints import check_weights_fit
     from zenrl.common.env_factory import make_env
     from zenrl.common.networks import action_size, obs_spec
     from zenrl.common.opponents import check_opponents
@@ -135,8 +136,8 @@ def check_env_now(cfg: RunConfig) -> None:
         raise ConfigError(f"{where} with env.kwargs={cfg.env.kwargs!r} cannot be made: "
                           f"{type(e).__name__}: {_first_line(str(e))}") from None
     try:
-        action_size(env.action_space, cfg.algo)
-        obs_spec(env.observation_space)
+        n_actions = action_size(env.action_space, cfg.algo)
+        spec = obs_spec(env.observation_space)
         obs, _ = env.reset(seed=cfg.seed)
         # what the actors will check of every observation: before any child starts
         EnvGuard(cfg.env.id, env.observation_space).conform(stack_flat([obs]))
@@ -146,6 +147,7 @@ def check_env_now(cfg: RunConfig) -> None:
             raise ConfigError(_first_line(str(e))) from None
         raise ConfigError(f"{where}: {_first_line(str(e)) or type(e).__name__}") from None
     try:
+        check_weights_fit(cfg, spec, n_actions)  # the network's weights fit one message (ConfigError)
         check_opponents(cfg, env)  # every opponents.pool file loads and fits the env, before any child starts
     finally:
         env.close()
