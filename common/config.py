@@ -373,7 +373,7 @@ class RunConfig(_Section):
     algo: Literal["apex", "a3c", "r2d2", "impala"] = Field("apex", description="Algorithm family: apex (Ape-X DQN), a3c, r2d2 (recurrent Ape-X), or impala (IMPALA / APPO with impala.clip_eps).")
     run_id: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="Run id (key prefix zenrl/<run_id>/ and runs/<run_id>/); default: generated.")
     runs_dir: str = Field("runs", description="Directory holding runs/<run_id>/.")
-    seed: int = Field(0, ge=0, description="Base random seed.")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Base random seed (0 to 2^31-1: each process adds its offset, and every library it reaches takes the sum).")
     max_env_steps: Optional[int] = Field(None, ge=1, description="Stop the run after this many env steps (all actors).")
     max_updates: Optional[int] = Field(None, ge=1, description="Stop the run after this many learner updates.")
     max_wall_s: Optional[float] = Field(None, gt=0, description="Stop the run after this many seconds.")

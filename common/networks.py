@@ -454,7 +454,26 @@ def to_tensors(flat: Mapping[str, np.ndarray], device: torch.device | str = "cpu
     return out
 
 
-def resolve_device(name: str) -> torch.device:
+def resolve_device(name: str, option: str = "learner.device") -> torch.device:
+    """``auto``: CUDA where torch sees a GPU, else the CPU. Any other ``name`` must be a device
+    this torch has here: :class:`~zenrl.common.errors.ConfigError` naming ``option`` otherwise (a
+    learner exits at once with it; before, it failed in torch's first call and was restarted)."""
+    from zenrl.common.errors import ConfigError
+
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"{option} = {name!r} is not a torch device: auto, cpu, cuda, cuda:N or mps") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"{option} = {name!r}, but this torch sees no CUDA device (a CPU build of torch, or no "
+                              f"GPU driver): use {option}=auto or cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"{option} = {name!r}, but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ConfigError(f"{option} = {name!r}, but this torch has no MPS device: use {option}=auto or cpu")
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(f"{option} = {name!r}: zenrl trains on cpu, cuda or mps")
+    return dev

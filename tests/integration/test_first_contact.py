@@ -79,6 +79,7 @@ def run_args(tmp_path, run_id: str, *sets: str) -> list[str]:
     (("network.hidden=[4200,4200]",), "the apex network has 17,677,803 parameters (67.4 MiB), more than one "
                                       "weights message may carry (transport.max_message_bytes = 64.0 MiB)"),
     (("algo=impala", "network.hidden=[100000,100000]"), "the impala network has 10,000,"),
+    (("learner.device=banana",), "learner.device = 'banana' is not a torch device: auto, cpu, cuda, cuda:N or mps"),
     (("env.id=tests.integration.custom_envs:IntWalk-v0", "env.kwargs={obs_size: 3}"),
      "zenrl: error: env tests.integration.custom_envs:IntWalk-v0 gave observation obs of shape (3,); its "
      "observation_space says (2,)"),

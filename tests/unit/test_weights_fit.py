@@ -55,3 +55,27 @@ def test_a_learner_whose_start_failed_closes_without_a_second_error():
     from zenrl.learner.apex import ApexLearner
 
     ApexLearner.__new__(ApexLearner).close()
+
+
+def test_a_device_this_machine_lacks_is_a_configuration_error():
+    import torch
+
+    from zenrl.common.networks import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu") and resolve_device("auto").type in ("cpu", "cuda")
+    with pytest.raises(ConfigError, match=r"learner.device = 'banana' is not a torch device"):
+        resolve_device("banana")
+    with pytest.raises(ConfigError, match=r"learner.device = 'xla': zenrl trains on cpu, cuda or mps"):
+        resolve_device("xla")
+    n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ConfigError, match=r"learner.device = 'cuda:\d+', but this (torch sees no CUDA device|machine has \d+ CUDA)"):
+        resolve_device(f"cuda:{n}")  # one past the last (the first, where there is none)
+    if not n:
+        with pytest.raises(ConfigError, match=r"use learner.device=auto or cpu"):
+            resolve_device("cuda")
+
+
+def test_a_seed_past_what_every_library_takes_is_refused(tmp_path):
+    assert _cfg(tmp_path, f"seed={2**31 - 1}").seed == 2**31 - 1
+    with pytest.raises(ConfigError, match=r"seed: Input should be less than or equal to 2147483647"):
+        _cfg(tmp_path, f"seed={2**64}")

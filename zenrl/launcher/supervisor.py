@@ -122,11 +122,12 @@ def check_env_now(cfg: RunConfig) -> None:
     :class:`ConfigError` line instead of every child failing in its log."""
     from zenrl.common.checkpoints import check_weights_fit
     from zenrl.common.env_factory import make_env
-    from zenrl.common.networks import action_size, obs_spec
+    from zenrl.common.networks import action_size, obs_spec, resolve_device
     from zenrl.common.opponents import check_opponents
     from zenrl.tools.loading import quiet_native_imports
 
     quiet_native_imports()  # pybullet's build-time banner is noise in the launcher's terminal
+    resolve_device(cfg.learner.device)  # a device this machine lacks: one line now, not the learner's exit
     where = f"env.id={cfg.env.id!r}"
     try:
         env = make_env(cfg.env)
