@@ -82,8 +82,8 @@ def _cast(obs, space: gym.Space, wire: gym.Space):
         return {k: _cast(obs[k], space.spaces[k], sub) for k, sub in wire.spaces.items()}
     if isinstance(space, gym.spaces.Tuple):
         return {str(i): _cast(o, s, wire.spaces[str(i)]) for i, (o, s) in enumerate(zip(obs, space.spaces))}
-    if isinstance(space, gym.spaces.MultiDiscrete):
-        return {str(i): np.int64(v) for i, v in enumerate(np.asarray(obs).reshape(-1))}
+    if isinstance(space, gym.spaces.MultiDiscrete) and isinstance(wire, gym.spaces.Dict):
+        return {str(i): np.int64(v) for i, v in enumerate(np.asarray(obs))}
     if isinstance(wire, gym.spaces.Box):
         return np.asarray(obs, wire.dtype)
     return obs

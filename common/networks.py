@@ -24,6 +24,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from zenrl.common.config import NetworkConfig
+from zenrl.common.errors import ConfigError
 from zenrl.common.specs import ArraySpec, obs_fields
 
 
@@ -458,8 +459,6 @@ def resolve_device(name: str, option: str = "learner.device") -> torch.device:
     """``auto``: CUDA where torch sees a GPU, else the CPU. Any other ``name`` must be a device
     this torch has here: :class:`~zenrl.common.errors.ConfigError` naming ``option`` otherwise (a
     learner exits at once with it; before, it failed in torch's first call and was restarted)."""
-    from zenrl.common.errors import ConfigError
-
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:

@@ -119,7 +119,8 @@ def check_env(cfg: RunConfig, slow_s: float = CHECK_ENV_SLOW_S) -> None:
 def check_env_now(cfg: RunConfig) -> None:
     """Make, inspect and reset the run's env once, here, before anything starts: a mistake in
     ``env.id`` / ``env.kwargs`` or an env zenrl cannot learn (continuous actions) is then one
-    :class:`ConfigError` line instead of every child failing in its log."""
+    :class:`ConfigError` line instead of every child failing in its log; so are a
+    ``learner.device`` this machine lacks and a network whose weights no message can carry."""
     from zenrl.common.checkpoints import check_weights_fit
     from zenrl.common.env_factory import make_env
     from zenrl.common.networks import action_size, obs_spec, resolve_device
