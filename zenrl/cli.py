@@ -696,9 +696,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_config)
 
     def policy_args(s: argparse.ArgumentParser, required: bool = True) -> None:
-        s.add_argument("--checkpoint", required=required,
+        s.add_argument("--checkpoint",
                        help="a checkpoint file, or a run folder (runs/<id>) or checkpoints folder: its newest "
                             "checkpoint; with --exported (evaluate and play) also a `zenrl export` file, e.g. models/*.pt")
+        # `zenrl evaluate runs/<id>`, as `zenrl status runs/<id>` and `zenrl plot runs/<id>` take it
+        s.add_argument("checkpoint_pos", nargs="?", metavar="RUN", help="the same as --checkpoint")
+        s.set_defaults(_policy_parser=s, _checkpoint_required=required)
         s.add_argument("--env", help="env id (default: the one the checkpoint was trained on)")
         s.add_argument("--env-kwargs", help="JSON object merged over the checkpoint's env.kwargs, e.g. '{\"match_time\": 60}'")
         s.add_argument("--log-level", default=os.environ.get("ZENRL_LOG_LEVEL", "WARNING"), help="logging level")
@@ -790,8 +793,24 @@ def _version() -> str:
         return __version__
 
 
+def _policy_checkpoint(args: argparse.Namespace) -> None:
+    """``--checkpoint`` or the positional ``RUN`` of evaluate, play and export (one of them; the
+    parser's usage error when both differ, or when a command that needs one has neither)."""
+    parser = getattr(args, "_policy_parser", None)
+    if parser is None:
+        return
+    if args.checkpoint_pos is not None:
+        if args.checkpoint is not None and args.checkpoint != args.checkpoint_pos:
+            parser.error(f"two checkpoints: --checkpoint {args.checkpoint} and {args.checkpoint_pos}; give one")
+        args.checkpoint = args.checkpoint_pos
+    if args._checkpoint_required and not args.checkpoint:
+        parser.error("the following arguments are required: --checkpoint (or the run folder or checkpoint as the "
+                     "first argument: runs/<id>)")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _policy_checkpoint(args)
     # A one-shot command (evaluate, export, status, ...) stops on SIGTERM as on Ctrl-C: its
     # finally blocks run (an evaluation's worker pool is terminated, not orphaned). The roles
     # and `zenrl run` replace this with their own orderly stop (zenrl.common.signals).

@@ -59,3 +59,32 @@ def test_an_output_file_checked_up_front_is_left_as_it_was(tmp_path):
     old.write_text('{"kept": true}')
     build_parser().parse_args(["evaluate", "--checkpoint", "x", "--json", str(old)])
     assert old.read_text() == '{"kept": true}'  # not truncated by the check
+
+
+@pytest.mark.parametrize("cmd", [["evaluate"], ["play", "--out", "a.gif"], ["export", "--out", "a.pt"]])
+def test_the_run_folder_as_the_first_argument_is_the_checkpoint(tmp_path, cmd):
+    """`zenrl evaluate runs/<id>`, as `zenrl status runs/<id>` takes it: the same as --checkpoint."""
+    from zenrl.cli import _policy_checkpoint
+
+    out = [str(tmp_path / x) if x.startswith("a.") else x for x in cmd]
+    a = build_parser().parse_args([out[0], "runs/r1", *out[1:]])
+    _policy_checkpoint(a)
+    assert a.checkpoint == "runs/r1"
+    a = build_parser().parse_args([*out, "--checkpoint", "runs/r1", "runs/r1"])
+    _policy_checkpoint(a)  # the same one twice: taken
+    assert a.checkpoint == "runs/r1"
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["export", "--out", "a.pt"], "required: --checkpoint (or the run folder or checkpoint as the first argument"),
+    (["play", "--out", "a.gif"], "required: --checkpoint (or the run folder"),
+    (["evaluate", "runs/a", "--checkpoint", "runs/b"], "two checkpoints: --checkpoint runs/b and runs/a; give one"),
+])
+def test_a_missing_or_doubled_checkpoint_is_a_usage_error(tmp_path, capsys, argv, why):
+    from zenrl.cli import main
+
+    argv = [str(tmp_path / x) if x.startswith("a.") else x for x in argv]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert why in capsys.readouterr().err.strip().splitlines()[-1]
