@@ -15,15 +15,10 @@ from zenrl.common.env_factory import WireObservations, make_env
 from zenrl.common.networks import obs_spec
 
 
-class _MixedEnv(gym.Env):
-    """A Dict of an int32 Box, a float64 Box, a MultiBinary, a Discrete and a uint8 image."""
+class _SampledEnv(gym.Env):
+    """Observations sampled from its ``observation_space`` (set by a subclass), two actions."""
 
-    def __init__(self) -> None:
-        self.observation_space = gym.spaces.Dict({
-            "count": gym.spaces.Box(0, 10, (3,), np.int32), "pos": gym.spaces.Box(-1.0, 1.0, (2,), np.float64),
-            "flags": gym.spaces.MultiBinary(4), "cell": gym.spaces.Discrete(5),
-            "image": gym.spaces.Box(0, 255, (8, 8, 3), np.uint8)})
-        self.action_space = gym.spaces.Discrete(2)
+    action_space = gym.spaces.Discrete(2)
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
@@ -31,6 +26,16 @@ class _MixedEnv(gym.Env):
 
     def step(self, action):
         return self.observation_space.sample(), 0.0, False, False, {}
+
+
+class _MixedEnv(_SampledEnv):
+    """A Dict of an int32 Box, a float64 Box, a MultiBinary, a Discrete and a uint8 image."""
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Dict({
+            "count": gym.spaces.Box(0, 10, (3,), np.int32), "pos": gym.spaces.Box(-1.0, 1.0, (2,), np.float64),
+            "flags": gym.spaces.MultiBinary(4), "cell": gym.spaces.Discrete(5),
+            "image": gym.spaces.Box(0, 255, (8, 8, 3), np.uint8)})
 
 
 if "test/MixedObs-v0" not in gym.registry:
@@ -70,7 +75,7 @@ def test_envs_already_in_the_wire_dtypes_are_not_wrapped(env_id):
         w = w.env
 
 
-class _NestedEnv(gym.Env):
+class _NestedEnv(_SampledEnv):
     """A Tuple of a float64 Box, a MultiDiscrete with starts and a Dict holding a Tuple."""
 
     def __init__(self) -> None:
@@ -78,14 +83,6 @@ class _NestedEnv(gym.Env):
             gym.spaces.Box(-2.0, 2.0, (2,), np.float64),
             gym.spaces.MultiDiscrete([3, 4], start=[-1, 5]),
             gym.spaces.Dict({"inner": gym.spaces.Tuple((gym.spaces.Discrete(2), gym.spaces.MultiBinary(3)))})))
-        self.action_space = gym.spaces.Discrete(2)
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        return self.observation_space.sample(), {}
-
-    def step(self, action):
-        return self.observation_space.sample(), 0.0, False, False, {}
 
 
 if "test/NestedObs-v0" not in gym.registry:
